@@ -1,0 +1,46 @@
+"""Shared fixtures: the real ETH/UCY copy (skipped when absent) and small generated datasets."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+# Tests run on 2-core CI machines: keep torch from oversubscribing them.
+torch.set_num_threads(1)
+
+
+def _data_root() -> Path | None:
+    root = os.environ.get("TRAJFLOW_DATA")
+    if root:
+        return Path(root)
+    sibling = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    return sibling if sibling.is_dir() else None
+
+
+@pytest.fixture(scope="session")
+def eth_ucy_raw() -> Path:
+    """The shared ETH/UCY copy in the Trajectron++ layout (TRAJFLOW_DATA/eth_ucy)."""
+    root = _data_root()
+    if root is None or not (root / "eth_ucy").is_dir():
+        pytest.skip("real ETH/UCY data not found: set TRAJFLOW_DATA to a folder holding eth_ucy/ "
+                    "(CI sets it to ../shared/data)")
+    return root / "eth_ucy"
+
+
+@pytest.fixture(scope="session")
+def eth_ucy_dataset(eth_ucy_raw: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shared ETH/UCY copy ingested once per test session."""
+    from trajflow_pipeline.stages.ingest_eth_ucy import ingest_eth_ucy
+
+    return ingest_eth_ucy(eth_ucy_raw, tmp_path_factory.mktemp("eth") / "eth_ucy", quiet=True)
+
+
+@pytest.fixture(scope="session")
+def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small synthetic bimodal dataset (600 samples)."""
+    from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+
+    return ingest_synthetic_bimodal(tmp_path_factory.mktemp("syn") / "bimodal", samples=600, seed=3, quiet=True)

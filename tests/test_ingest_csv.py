@@ -1,0 +1,115 @@
+"""Bring-your-own CSV / Parquet: column mapping, time grids, identical-input groups, splits and bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from typer.testing import CliRunner
+
+from trajflow_pipeline.cli.app import app
+from trajflow_pipeline.data import list_folds, select_samples
+from trajflow_pipeline.errors import DataError, UsageError
+from trajflow_pipeline.schemas import open_dataset
+from trajflow_pipeline.stages.ingest_csv import ColumnMap, ingest_csv
+
+runner = CliRunner()
+
+
+def walkers(scenes: int = 2, agents: int = 3, frames: int = 30, seed: int = 0) -> pl.DataFrame:
+    rng = np.random.default_rng(seed)
+    rows = []
+    for s in range(scenes):
+        for a in range(agents):
+            start = rng.normal(size=2) * 5
+            velocity = rng.normal(size=2)
+            for f in range(frames):
+                rows.append({"sid": f"scene{s}", "who": f"p{a}", "time": f * 0.5, "px": start[0] + velocity[0] * f * 0.5,
+                             "py": start[1] + velocity[1] * f * 0.5, "cls": ["Person", "Car", "bike"][a % 3]})
+    return pl.DataFrame(rows)
+
+
+def test_mapped_columns_time_and_types(tmp_path: Path) -> None:
+    path = tmp_path / "walkers.csv"
+    walkers(frames=100).write_csv(path)
+    out = ingest_csv(path, tmp_path / "ds", dt=0.5, n_past=4, n_future=6,
+                     columns=ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py,type=cls"))
+    ds = open_dataset(out)
+    tracks = ds.tracks()
+    assert tracks.height == 2 * 3 * 100
+    assert set(tracks.get_column("agent_type")) == {"pedestrian", "vehicle", "bicycle"}
+    assert set(tracks.get_column("agent_label")) == {"p0", "p1", "p2"}
+    samples = ds.samples()
+    assert (samples.get_column("n_past") == 4).all()
+    assert ds.meta.protocol == "folds" and list_folds(ds) == ["0", "1", "2", "3", "4"]
+    for fold in list_folds(ds):
+        test = set(select_samples(ds, fold, "test").get_column("sample_id"))
+        train = set(select_samples(ds, fold, "train").get_column("sample_id"))
+        assert test and train and not test & train
+
+
+def test_identical_inputs_share_a_group_even_across_scenes(tmp_path: Path) -> None:
+    """Same pasts of the same agents -> one group; a different future does not matter, other context does."""
+    base = walkers(scenes=1, agents=2, frames=12)
+    future_differs = base.with_columns(sid=pl.lit("copy"), px=pl.when((pl.col("who") == "p0") & (pl.col("time") > 3.0))
+                                       .then(pl.col("px") + 2.0).otherwise(pl.col("px")))
+    lonely = base.filter(pl.col("who") == "p0").with_columns(sid=pl.lit("lonely"))
+    moved = base.with_columns(sid=pl.lit("moved"), px=pl.col("px") + 0.01)
+    path = tmp_path / "multi.parquet"
+    pl.concat([base, future_differs, lonely, moved]).write_parquet(path)
+    out = ingest_csv(path, tmp_path / "ds", dt=0.5, n_past=4, n_future=6, split_col=None, folds=2,
+                     columns=ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py,type=cls"))
+    samples = open_dataset(out).samples()
+    assert set(samples.get_column("t0_frame")) == {3, 4, 5}
+    for (t0, agent), part in samples.group_by("t0_frame", "agent_id"):
+        group = dict(part.select("scene_id", "group_id").iter_rows())
+        assert group["scene0"] == group["copy"]
+        assert group["moved"] != group["scene0"]
+        if "lonely" in group:
+            assert group["lonely"] not in (group["scene0"], group["moved"])
+    assert samples.get_column("group_id").n_unique() == 3 * (2 + 2 + 1)
+
+
+def test_split_column_gives_a_fixed_protocol(tmp_path: Path) -> None:
+    frame = walkers().with_columns(split=pl.when(pl.col("sid") == "scene0").then(pl.lit("train")).otherwise(pl.lit("Test")))
+    path = tmp_path / "w.csv"
+    frame.write_csv(path)
+    out = ingest_csv(path, tmp_path / "ds", dt=0.5, split_col="split",
+                     columns=ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py"))
+    ds = open_dataset(out)
+    assert ds.meta.protocol == "fixed"
+    assert set(select_samples(ds, None, "test").get_column("scene_id")) == {"scene1"}
+    assert set(select_samples(ds, None, "train").get_column("scene_id")) == {"scene0"}
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda f: f.drop("py"), "missing column(s) py"),
+    (lambda f: f.with_columns(px=pl.when(pl.int_range(pl.len()) == 5).then(pl.lit("x")).otherwise(pl.col("px").cast(pl.String))),
+     "w.csv:7: column 'px' holds 'x'"),
+    (lambda f: f.with_columns(py=pl.when(pl.int_range(pl.len()) == 2).then(float("nan")).otherwise(pl.col("py"))),
+     "w.csv:4: column 'py' holds 'NaN'"),
+    (lambda f: f.with_columns(time=pl.when(pl.int_range(pl.len()) == 3).then(1.3).otherwise(pl.col("time"))),
+     "w.csv:5: time 1.3 is not on the --dt 0.5 grid"),
+    (lambda f: pl.concat([f, f.slice(4, 1)]), "duplicate row for scene 'scene0', agent 1, frame 4"),
+    (lambda f: f.head(0), "file has no rows"),
+])
+def test_bad_csv_input(tmp_path: Path, edit, message: str) -> None:
+    path = tmp_path / "w.csv"
+    edit(walkers()).write_csv(path)
+    with pytest.raises(DataError) as caught:
+        ingest_csv(path, tmp_path / "ds", dt=0.5, columns=ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py"))
+    assert message in str(caught.value)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_ragged_csv_line_and_bad_options(tmp_path: Path) -> None:
+    path = tmp_path / "r.csv"
+    path.write_text("scene_id,agent_id,frame,x,y\na,1,0,0,0\na,1,1,1,1,9\n")
+    result = runner.invoke(app, ["ingest", "csv", str(path), "-o", str(tmp_path / "o"), "--dt", "0.4"])
+    assert result.exit_code == 1 and "r.csv:3: expected 5 fields" in result.output
+    with pytest.raises(UsageError, match="role=column"):
+        ColumnMap.parse("colour=c")
+    result = runner.invoke(app, ["ingest", "csv", str(path), "-o", str(tmp_path / "o"), "--dt", "-1"])
+    assert result.exit_code == 2 and "--dt must be positive" in result.output

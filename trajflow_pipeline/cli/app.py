@@ -1,0 +1,154 @@
+"""The `trajflow` command line: parses arguments and calls one stage per command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .. import __version__
+from ..util.progress import console
+from .common import DEBUG, Overwrite, Quiet, user_errors
+
+app = typer.Typer(
+    name="trajflow",
+    help="TrajFlow pipeline: raw trajectory datasets -> unified Parquet scenes -> models -> metrics and reports.",
+    no_args_is_help=True,
+    rich_markup_mode="rich",
+    pretty_exceptions_show_locals=False,
+)
+ingest_app = typer.Typer(help="Turn raw datasets into the unified Parquet scene dataset.", no_args_is_help=True)
+app.add_typer(ingest_app, name="ingest")
+
+#: the main result of a command (tables, paths) goes to stdout; progress and errors go to stderr
+stdout = Console()
+
+OutDir = Annotated[Path, typer.Option("--out", "-o", help="Dataset directory to write (created atomically).")]
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"trajflow {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks for errors.")] = False,
+    version: Annotated[Optional[bool], typer.Option("--version", callback=_version, is_eager=True,
+                                                    help="Print the version and exit.")] = None,
+) -> None:
+    """TrajFlow: from raw trajectory datasets to trained normalizing-flow predictors and paper-grade metrics."""
+    if debug:
+        DEBUG["enabled"] = True
+
+
+def _done(out: Path, quiet: bool) -> None:
+    if not quiet:
+        from ..stages.inspect import summarize
+
+        summary = summarize(out)
+        console.print(f"[green]wrote[/] {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
+                      f"{summary['samples']} samples, {summary['groups']} groups")
+
+
+@ingest_app.command("eth-ucy")
+def ingest_eth_ucy_command(
+    raw: Annotated[Path, typer.Argument(help="The Trajectron++ layout (<location>/{train,val,test}/*.txt) or a "
+                                             "folder of the eight full sequences (e.g. all_data/).")],
+    out: OutDir,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """ETH/UCY pedestrians: leave-one-location-out folds, 8 past + 12 future steps at 0.4 s."""
+    from ..stages.ingest_eth_ucy import ingest_eth_ucy
+
+    with user_errors():
+        _done(ingest_eth_ucy(raw, out, overwrite=overwrite, quiet=quiet), quiet)
+
+
+@ingest_app.command("synthetic-bimodal")
+def ingest_synthetic_command(
+    out: OutDir,
+    samples: Annotated[int, typer.Option(help="Number of futures (half per mode).")] = 3000,
+    seed: Annotated[int, typer.Option(help="Random seed; the same seed gives byte-identical files.")] = 0,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """The paper's synthetic bimodal set: one past of 10 steps, two future modes of 14 steps at 0.25 s."""
+    from ..stages.ingest_synthetic import ingest_synthetic_bimodal
+
+    with user_errors():
+        _done(ingest_synthetic_bimodal(out, samples=samples, seed=seed, overwrite=overwrite, quiet=quiet), quiet)
+
+
+@ingest_app.command("csv")
+def ingest_csv_command(
+    file: Annotated[Path, typer.Argument(help="CSV (with a header) or Parquet file, one row per agent and time.")],
+    out: OutDir,
+    dt: Annotated[float, typer.Option(help="Seconds between frames.")],
+    columns: Annotated[Optional[str], typer.Option(
+        help="Column mapping role=name,... with roles scene, agent, frame or time, x, y, type "
+             "(defaults: scene_id, agent_id, frame, x, y; no type column means pedestrians).")] = None,
+    past: Annotated[int, typer.Option(help="Observed steps per sample (including t0).")] = 8,
+    future: Annotated[int, typer.Option(help="Predicted steps per sample.")] = 12,
+    name: Annotated[Optional[str], typer.Option(help="Dataset name (default: the file's stem).")] = None,
+    split_col: Annotated[Optional[str], typer.Option(help="Column holding train/val/test per row.")] = None,
+    folds: Annotated[int, typer.Option(help="Time-block folds per scene when no --split-col is given.")] = 5,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """Bring-your-own trajectories from a CSV or Parquet table."""
+    from ..stages.ingest_csv import ColumnMap, ingest_csv
+
+    with user_errors():
+        result = ingest_csv(file, out, dt=dt, columns=ColumnMap.parse(columns), n_past=past, n_future=future,
+                            dataset=name, split_col=split_col, folds=folds, overwrite=overwrite, quiet=quiet)
+        _done(result, quiet)
+
+
+@app.command("inspect")
+def inspect_command(
+    data: Annotated[Path, typer.Argument(help="A dataset directory written by `trajflow ingest`.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
+) -> None:
+    """Summarise a dataset: scenes, agents, rows, samples per fold and split, dt, agent types."""
+    from ..stages.inspect import summarize
+
+    with user_errors():
+        summary = summarize(data)
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2, default=str))
+        return
+    _print_summary(summary)
+
+
+def _print_summary(summary: dict) -> None:
+    overview = Table(title=f"{summary['dataset']}  ({summary['path']})", show_header=False)
+    for key in ("schema_version", "written_by", "protocol", "dt", "scenes", "agents", "track_rows",
+                "track_shards", "samples", "groups", "has_map"):
+        overview.add_row(key, str(summary[key]))
+    overview.add_row("horizons (past/future)",
+                     ", ".join(f"{h['n_past']}/{h['n_future']} ({h['len']})" for h in summary["horizons"]))
+    stdout.print(overview)
+    splits = Table(title="samples by fold and split")
+    for column in ("fold", "split", "samples", "groups"):
+        splits.add_column(column, justify="right" if column in ("samples", "groups") else "left")
+    for row in summary["samples_by_fold_and_split"]:
+        splits.add_row(str(row["fold"] or "-"), str(row["split"] or "-"), str(row["samples"]), str(row["groups"]))
+    stdout.print(splits)
+    types = Table(title="agent types")
+    for column in ("agent_type", "agents", "rows"):
+        types.add_column(column)
+    for row in summary["agent_types"]:
+        types.add_row(row["agent_type"], str(row["agents"]), str(row["rows"]))
+    stdout.print(types)
+
+
+def main() -> None:
+    """Entry point of the `trajflow` console script."""
+    app()

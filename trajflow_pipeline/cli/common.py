@@ -1,0 +1,34 @@
+"""What every command shares: turning user errors into one line and an exit code, and the --quiet flag."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from typing import Annotated
+
+import typer
+
+from ..errors import TrajflowError
+from ..util.progress import console
+
+#: set by the top-level --debug option (or TRAJFLOW_DEBUG=1): show tracebacks instead of one-line errors
+DEBUG = {"enabled": os.environ.get("TRAJFLOW_DEBUG", "") not in ("", "0")}
+
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or summaries (for scripts).")]
+Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace OUT even if it holds something else.")]
+
+
+@contextlib.contextmanager
+def user_errors() -> Iterator[None]:
+    """Report a TrajflowError as `error: ...` on stderr and exit with its code; --debug re-raises it."""
+    try:
+        yield
+    except TrajflowError as error:
+        if DEBUG["enabled"]:
+            raise
+        console.print(f"[bold red]error:[/] {error}", highlight=False, soft_wrap=True)
+        raise typer.Exit(error.exit_code) from None
+    except KeyboardInterrupt:
+        console.print("[bold red]interrupted[/]: nothing was moved into place")
+        raise typer.Exit(130) from None

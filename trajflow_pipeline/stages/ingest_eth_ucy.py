@@ -1,0 +1,221 @@
+"""`trajflow ingest eth-ucy`: the ETH/UCY pedestrian sequences as a unified Parquet dataset.
+
+Reads the Social-GAN / Trajectron++ layout (``<location>/{train,val,test}/*.txt``) or a flat folder of the
+eight full sequences (``all_data/``). The layout repeats every sequence several times; each is ingested once.
+
+Protocol (the paper's strict one): every pedestrian at every frame t0 with 8 past and 12 future positions on
+consecutive frames becomes a sample. Leave-one-location-out folds: eth, hotel, univ (students001 + 003), zara1,
+zara2; crowds_zara03 and uni_examples only ever train. Inside a training sequence the standard split cuts at a
+frame: windows entirely before it are `train`, entirely after it `val`; windows across it serve only as test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import polars as pl
+
+from ..errors import DataError, TrajflowError
+from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..util.progress import make_progress
+from .textfile import read_numeric_table
+from .windows import complete_windows, identical_input_groups
+
+DATASET = "eth_ucy"
+DT = 0.4
+RAW_FRAME_STEP = 10
+N_PAST, N_FUTURE = 8, 12
+
+#: sequence name -> recording location; the five leave-one-out folds are named after their location
+SEQUENCES: dict[str, str] = {
+    "biwi_eth": "eth", "biwi_hotel": "hotel", "students001": "univ", "students003": "univ",
+    "crowds_zara01": "zara1", "crowds_zara02": "zara2", "crowds_zara03": "zara3", "uni_examples": "uni_examples",
+}
+FOLDS = ("eth", "hotel", "univ", "zara1", "zara2")
+
+#: First raw frame of each sequence's `*_val.txt` in the standard layout: the train/val cut used when only the
+#: flat folder of full sequences is given. Ingesting the layout reads the cut from the files themselves, and the
+#: tests check that both agree on the shared copy.
+STANDARD_VAL_START_RAW_FRAME: dict[str, int] = {
+    "biwi_eth": 10240, "biwi_hotel": 14400, "students001": 3550, "students003": 4320,
+    "crowds_zara01": 7110, "crowds_zara02": 8420, "crowds_zara03": 6030, "uni_examples": 5940,
+}
+
+
+@dataclass
+class SequenceSource:
+    """Where one sequence's lines come from: the files whose concatenation is the full sequence."""
+
+    name: str
+    files: list[Path]
+    val_start_raw_frame: int
+    val_file: Path | None = None
+    read_from: list[Path] = field(default_factory=list)
+
+
+def _is_layout(raw: Path) -> bool:
+    return any((raw / loc / split).is_dir() for loc in FOLDS for split in ("train", "val", "test"))
+
+
+def _layout_sources(raw: Path) -> dict[str, SequenceSource]:
+    """Locate each sequence once in the Trajectron++ layout, preferring the full test copy."""
+    missing = [loc for loc in FOLDS if not (raw / loc).is_dir()]
+    if missing:
+        raise DataError(f"location folder(s) {', '.join(missing)} missing from the ETH/UCY layout "
+                        f"(expected {', '.join(FOLDS)}, each with train/val/test)", path=raw)
+    sources: dict[str, SequenceSource] = {}
+    for name, location in SEQUENCES.items():
+        test_copy = raw / location / "test" / f"{name}.txt"
+        train_copies = sorted(raw.glob(f"*/train/{name}_train.txt"))
+        val_copies = sorted(raw.glob(f"*/val/{name}_val.txt"))
+        if test_copy.exists():
+            files = [test_copy]
+        elif train_copies and val_copies:
+            train_copy = train_copies[0]
+            files = [train_copy, train_copy.parent.parent / "val" / f"{name}_val.txt"]
+        else:
+            raise DataError(f"sequence '{name}' not found: expected {location}/test/{name}.txt or "
+                            f"<location>/train/{name}_train.txt with its _val.txt", path=raw)
+        if not val_copies:
+            raise DataError(f"no <location>/val/{name}_val.txt: the train/val cut of '{name}' is unknown",
+                            path=raw)
+        sources[name] = SequenceSource(name=name, files=files, val_start_raw_frame=-1, val_file=val_copies[0])
+    return sources
+
+
+def _flat_sources(folder: Path) -> dict[str, SequenceSource]:
+    """The eight full sequences as `<name>.txt` in one folder; the cut is the standard one."""
+    missing = [f"{name}.txt" for name in SEQUENCES if not (folder / f"{name}.txt").is_file()]
+    if missing:
+        raise DataError(f"missing sequence file(s) {', '.join(missing)} (a flat ETH/UCY folder holds all eight)",
+                        path=folder)
+    return {name: SequenceSource(name=name, files=[folder / f"{name}.txt"],
+                                 val_start_raw_frame=STANDARD_VAL_START_RAW_FRAME[name])
+            for name in SEQUENCES}
+
+
+def discover_sources(raw: Path) -> dict[str, SequenceSource]:
+    """Recognise the layout of `raw` and find every sequence exactly once."""
+    if not raw.exists():
+        raise DataError("raw ETH/UCY folder not found", path=raw)
+    if not raw.is_dir():
+        raise DataError("expected a folder (the ETH/UCY layout or the flat folder of eight sequences)", path=raw)
+    if _is_layout(raw):
+        return _layout_sources(raw)
+    if (raw / "all_data").is_dir():
+        return _flat_sources(raw / "all_data")
+    if not any(raw.iterdir()):
+        raise DataError("folder is empty", path=raw)
+    return _flat_sources(raw)
+
+
+def _read_sequence(source: SequenceSource) -> pl.DataFrame:
+    """All lines of one sequence as tracks rows, with integer frames and pedestrian ids checked."""
+    parts = []
+    for path in source.files:
+        table = read_numeric_table(path, ("frame", "ped", "x", "y"))
+        fractional = {column: pl.col(column) != pl.col(column).round() for column in ("frame", "ped")}
+        off_step = pl.col("frame") % RAW_FRAME_STEP != 0
+        flags = table.select(*[flag.any().alias(name) for name, flag in fractional.items()],
+                             off_step.any().alias("off_step")).row(0, named=True)
+        for column, flag in fractional.items():
+            if flags[column]:
+                first = table.filter(flag).row(0, named=True)
+                raise DataError(f"{column} must be a whole number, got {first[column]}", path=path, line=first["line"])
+        if flags["off_step"]:
+            first = table.filter(off_step).row(0, named=True)
+            raise DataError(f"frame {first['frame']:g} is not a multiple of the frame step {RAW_FRAME_STEP}",
+                            path=path, line=first["line"])
+        parts.append(table.with_columns(source=pl.lit(str(path))))
+    lines = pl.concat(parts)
+    key = pl.struct("frame", "ped")
+    repeated = lines.filter(~key.is_first_distinct())
+    if repeated.height:
+        again = repeated.row(0, named=True)
+        first = lines.filter((pl.col("frame") == again["frame"]) & (pl.col("ped") == again["ped"])).row(0, named=True)
+        raise DataError(f"duplicate row for frame {again['frame']:g}, pedestrian {again['ped']:g} "
+                        f"(first at {Path(first['source']).name}:{first['line']})",
+                        path=again["source"], line=again["line"])
+    frame = (pl.col("frame") / RAW_FRAME_STEP).round().cast(pl.Int64)
+    return (lines.select(
+        pl.lit(source.name).alias("scene_id"),
+        pl.col("ped").cast(pl.Int64).alias("agent_id"),
+        pl.lit("pedestrian").alias("agent_type"),
+        frame.alias("frame"),
+        (frame.cast(pl.Float64) * DT).alias("t"),
+        "x", "y",
+    ).sort("scene_id", "agent_id", "frame"))
+
+
+def _val_start_raw_frame(source: SequenceSource) -> int:
+    if source.val_file is None:
+        return source.val_start_raw_frame
+    with open(source.val_file, encoding="utf-8") as handle:
+        for number, line in enumerate(handle, start=1):
+            if line.strip():
+                try:
+                    return int(float(line.split()[0]))
+                except ValueError:
+                    raise DataError(f"frame is not a number: {line.split()[0]!r}", path=source.val_file,
+                                    line=number) from None
+    raise DataError("file is empty", path=source.val_file)
+
+
+def _samples(tracks: pl.DataFrame, scenes: pl.DataFrame) -> pl.DataFrame:
+    """Every complete 8 + 12 window, tagged with its fold (test location) and train/val segment."""
+    windows = complete_windows(tracks, N_PAST, N_FUTURE).join(
+        scenes.select("scene_id", "fold", "val_start_frame"), on="scene_id", how="left")
+    segment = (pl.when(pl.col("t0_frame") + N_FUTURE < pl.col("val_start_frame")).then(pl.lit("train"))
+               .when(pl.col("t0_frame") - (N_PAST - 1) >= pl.col("val_start_frame")).then(pl.lit("val"))
+               .otherwise(pl.lit(None, dtype=pl.String)))
+    samples = (windows.sort("scene_id", "t0_frame", "agent_id")
+               .with_row_index("sample_id")
+               .select(pl.col("sample_id").cast(pl.Int64), "scene_id", "agent_id", "t0_frame",
+                       pl.lit(N_PAST, dtype=pl.Int64).alias("n_past"),
+                       pl.lit(N_FUTURE, dtype=pl.Int64).alias("n_future"),
+                       segment.alias("split"), "fold",
+                       pl.struct("scene_id", "t0_frame").rank("dense").cast(pl.Int64).sub(1).alias("joint_id")))
+    return samples.with_columns(group_id=identical_input_groups(samples, tracks))
+
+
+def ingest_eth_ucy(raw: str | Path, out: str | Path, *, overwrite: bool = False, quiet: bool = False) -> Path:
+    """Ingest ETH/UCY from `raw` into the dataset directory `out`; returns `out`.
+
+    The dataset is written to a temporary directory and moved into place only when complete.
+    """
+    raw, out = Path(raw), Path(out)
+    sources = discover_sources(raw)
+    meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
+    tracks_parts, scene_rows = [], []
+    with make_progress(quiet) as progress:
+        task = progress.add_task("reading ETH/UCY sequences", total=len(sources))
+        for name, source in sources.items():
+            tracks_parts.append(_read_sequence(source))
+            val_start = _val_start_raw_frame(source)
+            location = SEQUENCES[name]
+            scene_rows.append({
+                "dataset": DATASET, "scene_id": name, "location": location, "dt": DT,
+                "source": ";".join(_relative(path, raw) for path in source.files),
+                "fold": location if location in FOLDS else None,
+                "val_start_frame": val_start // RAW_FRAME_STEP,
+            })
+            progress.advance(task)
+    scenes = pl.DataFrame(scene_rows, schema_overrides={"fold": pl.String, "val_start_frame": pl.Int64})
+    tracks = pl.concat(tracks_parts).sort("scene_id", "agent_id", "frame")
+    samples = _samples(tracks, scenes)
+    if samples.height == 0:
+        raise TrajflowError(f"{raw}: no pedestrian has {N_PAST + N_FUTURE} consecutive frames; no samples")
+    with DatasetWriter(out, meta, overwrite=overwrite) as writer:
+        for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):
+            writer.add_tracks(scene_tracks)
+        writer.finish(scenes, samples, lineage={"raw": str(raw.resolve()), "n_past": N_PAST,
+                                                "n_future": N_FUTURE, "raw_frame_step": RAW_FRAME_STEP})
+    return out
+
+
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return str(path.relative_to(root))
+    except ValueError:
+        return str(path)

@@ -1,0 +1,77 @@
+"""Which (agent, frame) pairs become prediction problems, and which problems share identical inputs.
+
+Shared by the ingest stages whose protocol is "every agent at every frame with a complete window"
+(ETH/UCY, bring-your-own CSV) and by anything that needs group ids for JSD.
+"""
+
+from __future__ import annotations
+
+import polars as pl
+
+#: Past positions closer than this (metres, in the data's own coordinates) count as identical inputs.
+GROUP_TOLERANCE_M = 1e-3
+
+
+def complete_windows(tracks: pl.DataFrame, n_past: int, n_future: int) -> pl.DataFrame:
+    """(scene_id, agent_id, t0_frame) of every window of n_past + n_future consecutive frames of one agent.
+
+    `tracks` must be sorted by (scene_id, agent_id, frame) with unique keys, as the contract guarantees; then a
+    window is complete exactly when the rows n_past - 1 before and n_future after the t0 row belong to the same
+    agent and span n_past + n_future - 1 frames.
+    """
+    back, ahead = n_past - 1, n_future
+    span = n_past + n_future - 1
+    same_agent = pl.lit(True)
+    for shift in (back, -ahead):
+        same_agent = same_agent & (pl.col("scene_id").shift(shift) == pl.col("scene_id")) & (
+            pl.col("agent_id").shift(shift) == pl.col("agent_id"))
+    complete = same_agent & ((pl.col("frame").shift(-ahead) - pl.col("frame").shift(back)) == span)
+    return (tracks.lazy()
+            .select("scene_id", "agent_id", pl.col("frame").alias("t0_frame"), complete.alias("complete"))
+            .filter(pl.col("complete"))
+            .drop("complete")
+            .collect())
+
+
+def _window_hashes(tracks: pl.DataFrame, n_past: int, tolerance: float) -> pl.DataFrame:
+    """Per track row: a hash of the agent's class and its positions over the n_past frames ending there.
+
+    Positions are rounded to a `tolerance` grid; frames missing from the window simply do not contribute
+    (their offsets are part of the hash, so gaps are told apart).
+    """
+    same_agent = [(pl.col("scene_id").shift(k) == pl.col("scene_id"))
+                  & (pl.col("agent_id").shift(k) == pl.col("agent_id"))
+                  & (pl.col("frame").shift(k) > pl.col("frame") - n_past) for k in range(n_past)]
+    fields = []
+    for k, valid in enumerate(same_agent):
+        for name, value in (("offset", pl.col("frame").shift(k) - pl.col("frame")),
+                            ("qx", (pl.col("x").shift(k) / tolerance).round().cast(pl.Int64)),
+                            ("qy", (pl.col("y").shift(k) / tolerance).round().cast(pl.Int64))):
+            fields.append(pl.when(valid).then(value).otherwise(None).alias(f"{name}{k}"))
+    return tracks.select("scene_id", "agent_id", "frame",
+                         pl.struct("agent_type", *fields).hash(seed=0).alias("window_hash"))
+
+
+def identical_input_groups(samples: pl.DataFrame, tracks: pl.DataFrame,
+                           tolerance: float = GROUP_TOLERANCE_M) -> pl.Series:
+    """A group_id per sample: samples with identical inputs (even across scenes) share it.
+
+    Inputs are identical when the same agents' classes are present at t0 and every past position (target's and
+    context agents') agrees after rounding to a `tolerance` grid. `tracks` must be sorted as the contract says.
+    Each agent window is hashed once, each (scene, frame) context once, so the cost is linear in the tracks
+    and samples. Ids are numbered in order of each group's first sample.
+    """
+    keys = []
+    base = samples.select("scene_id", "agent_id", "t0_frame", "n_past").with_row_index("__order")
+    for (n_past,), part in base.group_by("n_past"):
+        windows = _window_hashes(tracks, int(n_past), tolerance)
+        context = (windows.group_by("scene_id", "frame")
+                   .agg(pl.col("window_hash").sort().alias("context"))
+                   .select("scene_id", "frame", pl.col("context").hash(seed=1).alias("context_hash")))
+        keys.append(part.join(windows, left_on=["scene_id", "agent_id", "t0_frame"],
+                              right_on=["scene_id", "agent_id", "frame"], how="left")
+                    .join(context, left_on=["scene_id", "t0_frame"], right_on=["scene_id", "frame"], how="left")
+                    .select("__order", pl.struct("window_hash", "context_hash").hash(seed=2).alias("key")))
+    ordered = pl.concat(keys).sort("__order")
+    first_seen = pl.col("__order").min().over("key")
+    return ordered.select(first_seen.rank("dense").cast(pl.Int64).sub(1).alias("group_id")).to_series()
