@@ -12,7 +12,7 @@ from rich.table import Table
 
 from .. import __version__
 from ..util.progress import console
-from .common import DEBUG, Overwrite, Quiet, user_errors
+from .common import Overwrite, Quiet, set_debug, user_errors
 
 app = typer.Typer(
     name="trajflow",
@@ -43,8 +43,7 @@ def _root(
                                                     help="Print the version and exit.")] = None,
 ) -> None:
     """TrajFlow: from raw trajectory datasets to trained normalizing-flow predictors and paper-grade metrics."""
-    if debug:
-        DEBUG["enabled"] = True
+    set_debug(debug)
 
 
 def _done(out: Path, quiet: bool) -> None:

@@ -13,7 +13,12 @@ from ..errors import TrajflowError
 from ..util.progress import console
 
 #: set by the top-level --debug option (or TRAJFLOW_DEBUG=1): show tracebacks instead of one-line errors
-DEBUG = {"enabled": os.environ.get("TRAJFLOW_DEBUG", "") not in ("", "0")}
+DEBUG = {"enabled": False}
+
+
+def set_debug(flag: bool) -> None:
+    """Decide, once per invocation, whether errors show tracebacks (--debug or TRAJFLOW_DEBUG=1)."""
+    DEBUG["enabled"] = flag or os.environ.get("TRAJFLOW_DEBUG", "") not in ("", "0")
 
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or summaries (for scripts).")]
 Overwrite = Annotated[bool, typer.Option("--overwrite", help="Replace OUT even if it holds something else.")]
