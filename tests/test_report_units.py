@@ -1,0 +1,83 @@
+"""Report building blocks on hand-computed cases: minADE(K), number formatting, escaping, example choice, PNGs."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from trajflow_pipeline.errors import DataError
+from trajflow_pipeline.report.curves import ade_per_draw, expected_min_curve, subset_min_weights
+from trajflow_pipeline.report.document import Cell, Code, Figure, Heading, Paragraph, Table
+from trajflow_pipeline.report.figures import kde_colours, plot_min_ade_k, relative_scale
+from trajflow_pipeline.report.render import to_html, to_markdown
+from trajflow_pipeline.report.scenes import choose_examples
+from trajflow_pipeline.report.tables import format_mean_std, summary_stats
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def test_expected_min_matches_brute_force_over_subsets() -> None:
+    ade = np.array([[0.4, 0.1, 0.3, 0.2, 0.9], [1.0, 2.0, 0.5, 0.5, 3.0]])
+    draws = ade.shape[1]
+    brute = [np.mean([ade[:, list(subset)].min(axis=1) for subset in itertools.combinations(range(draws), k)],
+                     axis=0).mean() for k in range(1, draws + 1)]
+    curve = expected_min_curve(ade)
+    np.testing.assert_allclose(curve, brute)
+    assert curve[0] == pytest.approx(ade.mean()) and curve[-1] == pytest.approx(ade.min(axis=1).mean())
+    np.testing.assert_allclose(subset_min_weights(100).sum(axis=1), 1.0)
+
+
+def test_ade_per_draw_uses_the_common_horizon() -> None:
+    gt = pl.LazyFrame({"sample_id": [7] * 4, "step": [-1, 0, 1, 2], "x": [-1.0, 0.0, 1.0, 2.0],
+                       "y": [0.0] * 4})
+    # two draws, three predicted steps (one beyond the ground truth): ADE over steps 1..2 only
+    predictions = pl.LazyFrame({"sample_id": [7] * 6, "draw": [0, 0, 0, 1, 1, 1], "step": [1, 2, 3] * 2,
+                                "x": [1.0, 2.0, 99.0, 1.0, 2.0, 3.0], "y": [0.0, 0.0, 0.0, 3.0, 4.0, 0.0]})
+    np.testing.assert_allclose(ade_per_draw(predictions, gt, Path("p")), [[0.0, 3.5]])
+    ragged = predictions.filter(~((pl.col("draw") == 1) & (pl.col("sample_id") == 7)))
+    more = pl.concat([ragged, predictions.with_columns(sample_id=pl.lit(8, pl.Int64))])
+    with pytest.raises(DataError, match="different numbers of draws"):
+        ade_per_draw(more, pl.concat([gt, gt.with_columns(sample_id=pl.lit(8, pl.Int64))]), Path("p"))
+
+
+def test_mean_std_formatting_and_stats() -> None:
+    frame = pl.DataFrame({"dataset": ["d"] * 3, "model": ["m"] * 3, "metric": ["nll"] * 3,
+                          "value": [-1.0, -2.0, -3.0]})
+    row = summary_stats(frame).row(0, named=True)
+    assert row["mean"] == pytest.approx(-2.0) and row["std"] == pytest.approx(np.std([-1, -2, -3]))
+    assert format_mean_std(row["mean"], row["std"], row["runs"], 2) == "-2.00 ± 0.82"
+    assert format_mean_std(0.5, None, 1, 3) == "0.500" and format_mean_std(None, None, 0, 3) == "—"
+
+
+def test_choose_examples_spreads_samples_and_takes_one_per_group() -> None:
+    single = pl.DataFrame({"sample_id": np.repeat(np.arange(10), 3), "group_id": np.repeat(np.arange(10), 3)})
+    assert choose_examples(single, 3) == [0, 4, 9]  # evenly spread over the sorted sample ids
+    grouped = pl.DataFrame({"sample_id": np.arange(12), "group_id": np.repeat([5, 1, 9], 4)})
+    assert choose_examples(grouped, 4) == [4, 0, 8]  # first sample of each group, groups in id order
+    assert choose_examples(grouped, 0) == []
+
+
+def test_markdown_and_html_escape_text_and_keep_code() -> None:
+    blocks = [Heading(1, "runs <of> *x*"), Paragraph("see `a|b` and a <tag>"),
+              Table(header=("model", "v"), rows=((Cell("a|b"), Cell("1.0", bold=True)),), numeric=(False, True)),
+              Code('{"k": "<v>"}', "json", "config of `r`"),
+              Figure("figures/f.png", PNG_SIGNATURE + b"xx", "short", "long caption")]
+    markdown, html = to_markdown(blocks), to_html(blocks, "t")
+    assert "# runs \\<of> \\*x\\*" in markdown and "see `a|b` and a \\<tag>" in markdown
+    assert "| a\\|b | **1.0** |" in markdown and "|:---|---:|" in markdown
+    assert '```json\n{"k": "<v>"}\n```' in markdown and "![short](figures/f.png)" in markdown
+    assert "runs &lt;of&gt; *x*" in html and "<code>a|b</code>" in html and "<strong>1.0</strong>" in html
+    assert "<details><summary>config of <code>r</code></summary>" in html and "&lt;v&gt;" in html
+    assert 'src="data:image/png;base64,iVBORw0KGgp4eA=="' in html
+
+
+def test_figure_helpers_handle_degenerate_input() -> None:
+    assert relative_scale(np.array([np.nan, np.inf])).tolist() == [0.0, 0.0]
+    np.testing.assert_allclose(relative_scale(np.array([1.0, 1.0])), [1.0, 1.0])
+    assert kde_colours(np.zeros((50, 2))).tolist() == [1.0] * 50  # singular covariance: no density
+    png = plot_min_ade_k([("cv", np.array([0.5]), None)], 1, "one draw")
+    assert png.startswith(PNG_SIGNATURE) and len(png) > 1000

@@ -1,0 +1,265 @@
+"""Turn the report's inputs (run and experiment directories) into validated :class:`Run` records and polars frames.
+
+A *run* is a directory written by `trajflow train` + `trajflow eval`; the report reads only its ``eval/``
+folder (``eval.json``, ``metrics.parquet``, ``predictions.parquet``, ``ground_truth.parquet``) and, when present,
+``train_log.csv`` / ``train_log.parquet``. An *experiment* directory holds ``experiment.json`` whose ``runs``
+lists its finished runs relative to it. Every problem becomes one line naming the path at fault.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from ..errors import DataError, TrajflowError
+
+EVAL_DIR = "eval"
+EXPERIMENT_FILE = "experiment.json"
+TRAIN_LOGS = ("train_log.csv", "train_log.parquet")
+#: Files or folders that only a (trained, not yet evaluated) run holds: used to word the "eval first" error.
+_RUN_MARKERS = (*TRAIN_LOGS, "final", "run.json", "config.toml", "config.json", "checkpoints")
+
+#: Column kinds the report checks; the dtype each is cast to.
+_KINDS: dict[str, pl.DataType] = {"int": pl.Int64, "float": pl.Float64, "str": pl.String, "bool": pl.Boolean}
+
+METRICS_COLUMNS = {"metric": "str", "value": "float", "aggregate": "bool"}
+PREDICTION_COLUMNS = {"sample_id": "int", "draw": "int", "step": "int", "x": "float", "y": "float",
+                      "log_lik": "float"}
+GROUND_TRUTH_COLUMNS = {"sample_id": "int", "group_id": "int", "joint_id": "int", "step": "int", "x": "float",
+                        "y": "float"}
+TRAIN_LOG_COLUMNS = {"epoch": "int", "stage": "str", "train_loss": "float"}
+TRAIN_LOG_OPTIONAL = {"val_loss": "float", "lr": "float", "seconds": "float"}
+#: CSV logs are typed explicitly: an all-empty val_loss column would otherwise be read as text.
+_CSV_LOG_TYPES: dict[str, pl.DataType] = {"stage": pl.String, "train_loss": pl.Float64, "val_loss": pl.Float64,
+                                          "lr": pl.Float64, "seconds": pl.Float64}
+
+
+@dataclass(frozen=True)
+class Run:
+    """One evaluated run: where it is, what it is (from eval.json), and which experiment listed it."""
+
+    path: Path
+    name: str
+    model: str
+    dataset: str
+    fold: str | None
+    seed: int
+    info: dict[str, Any] = field(repr=False)
+    experiment: str | None = None
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.path / EVAL_DIR
+
+    @property
+    def draws(self) -> int | None:
+        """Draws per problem (eval.json `samples`)."""
+        value = self.info.get("samples")
+        return int(value) if isinstance(value, int) else None
+
+    @property
+    def k(self) -> int | None:
+        """The K of minADE_K / minFDE_K (eval.json `k`)."""
+        value = self.info.get("k")
+        return int(value) if isinstance(value, int) else None
+
+    @property
+    def label(self) -> str:
+        """Short label for legends: fold and seed."""
+        return f"fold {self.fold}, seed {self.seed}" if self.fold is not None else f"seed {self.seed}"
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """The resolved inputs: run directories in order (each with the experiment that listed it) and notes."""
+
+    runs: tuple[tuple[Path, str | None], ...]
+    experiments: tuple[str, ...]
+    notes: tuple[str, ...]
+
+
+def _looks_like_run(path: Path) -> bool:
+    """A directory that holds training outputs (but possibly no evaluation yet)."""
+    return any((path / marker).exists() for marker in _RUN_MARKERS) or (path / EVAL_DIR).exists()
+
+
+def _check_run_dir(path: Path) -> None:
+    """Raise the right one-line error for a directory that is not a usable evaluated run."""
+    if (path / EVAL_DIR / "metrics.parquet").is_file():
+        return
+    if _looks_like_run(path):
+        raise TrajflowError(f"{path}: no {EVAL_DIR}/metrics.parquet; run `trajflow eval {path}` first")
+    raise TrajflowError(f"{path}: neither an evaluated run (no {EVAL_DIR}/metrics.parquet) nor an experiment "
+                        f"(no {EXPERIMENT_FILE})")
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    """A JSON object from `path`, or a DataError naming the file."""
+    try:
+        value = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError("file not found", path) from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DataError(f"not valid JSON ({error})", path) from None
+    if not isinstance(value, dict):
+        raise DataError("expected a JSON object", path)
+    return value
+
+
+def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None]:
+    """The run directories an experiment lists, its name, and a note on planned runs that are not finished."""
+    manifest_path = path / EXPERIMENT_FILE
+    manifest = read_json(manifest_path)
+    runs = manifest.get("runs")
+    if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs):
+        raise DataError("`runs` must be a list of run paths relative to the experiment", manifest_path)
+    name = str(manifest.get("name", path.name))
+    planned = manifest.get("planned")
+    note = None
+    if isinstance(planned, list) and len(planned) > len(runs):
+        note = (f"experiment {name}: {len(runs)} of {len(planned)} planned runs are finished; the report shows "
+                f"the finished ones")
+    if not runs:
+        raise TrajflowError(f"{path}: the experiment lists no finished runs yet; run `trajflow experiment` first")
+    return [path / r for r in runs], name, note
+
+
+def resolve_inputs(inputs: Iterable[str | Path]) -> Inputs:
+    """Expand experiments into their runs, check every run has been evaluated, and drop duplicates."""
+    runs: list[tuple[Path, str | None]] = []
+    experiments: list[str] = []
+    notes: list[str] = []
+    seen: set[Path] = set()
+    for raw in inputs:
+        path = Path(raw)
+        if not path.exists():
+            raise TrajflowError(f"{path}: not found")
+        if not path.is_dir():
+            raise TrajflowError(f"{path}: not a directory (expected a run or an experiment directory)")
+        if (path / EXPERIMENT_FILE).is_file():
+            members, name, note = _experiment_runs(path)
+            experiments.append(name)
+            notes.extend([note] if note else [])
+        else:
+            members, name = [path], None
+        for member in members:
+            _check_run_dir(member)
+            key = member.resolve()
+            if key not in seen:
+                seen.add(key)
+                runs.append((member, name))
+    if not runs:
+        raise TrajflowError("no runs given: pass run or experiment directories")
+    return Inputs(tuple(runs), tuple(experiments), tuple(notes))
+
+
+def load_run(path: Path, experiment: str | None = None) -> Run:
+    """A :class:`Run` from its eval.json (model, dataset and seed are required; fold may be null)."""
+    info_path = path / EVAL_DIR / "eval.json"
+    info = read_json(info_path)
+    missing = [key for key in ("model", "dataset", "seed") if key not in info]
+    if missing:
+        raise DataError(f"missing key(s) {', '.join(missing)}", info_path)
+    try:
+        seed = int(info["seed"])
+    except (TypeError, ValueError):
+        raise DataError(f"seed must be an integer, got {info['seed']!r}", info_path) from None
+    fold = info.get("fold")
+    return Run(path=path, name=str(info.get("run") or path.name), model=str(info["model"]),
+               dataset=str(info["dataset"]), fold=None if fold is None else str(fold), seed=seed, info=info,
+               experiment=experiment)
+
+
+def _conform(frame: pl.LazyFrame, path: Path, columns: dict[str, str], optional: dict[str, str] | None = None,
+             what: str = "table") -> pl.LazyFrame:
+    """Check `frame`'s schema against `columns` (name -> kind) and cast to the canonical dtypes."""
+    try:
+        schema = frame.collect_schema()
+    except (pl.exceptions.PolarsError, OSError) as error:
+        raise DataError(f"unreadable {what} ({error})", path) from None
+    missing = [name for name in columns if name not in schema]
+    if missing:
+        raise DataError(f"not a trajflow {what}: missing column(s) {', '.join(missing)}", path)
+    wanted = {**columns, **{k: v for k, v in (optional or {}).items() if k in schema}}
+    for name, kind in wanted.items():
+        dtype = schema[name]
+        ok = {"int": dtype.is_integer(), "float": dtype.is_numeric(), "str": dtype in (pl.String, pl.Categorical),
+              "bool": dtype == pl.Boolean, }[kind]
+        if not ok and dtype != pl.Null:
+            raise DataError(f"column {name!r} has type {dtype}, expected {kind}", path)
+    return frame.with_columns(*(pl.col(name).cast(_KINDS[kind]) for name, kind in wanted.items()))
+
+
+def scan_table(path: Path, columns: dict[str, str], optional: dict[str, str] | None = None,
+               what: str = "table") -> pl.LazyFrame:
+    """A lazily scanned, schema-checked Parquet file (DataError naming the file when missing or corrupt)."""
+    if not path.is_file():
+        raise DataError(f"{what} not found; run `trajflow eval` again", path)
+    try:
+        frame = pl.scan_parquet(path)
+    except (pl.exceptions.PolarsError, OSError) as error:
+        raise DataError(f"unreadable {what} ({error})", path) from None
+    return _conform(frame, path, columns, optional, what)
+
+
+def collect(frame: pl.LazyFrame, path: Path, what: str = "Parquet file") -> pl.DataFrame:
+    """Collect a scan, turning read errors of a corrupt file into a DataError naming it."""
+    try:
+        return frame.collect()
+    except (pl.exceptions.PolarsError, OSError) as error:
+        raise DataError(f"unreadable {what} ({error})", path) from None
+
+
+def run_metrics(run: Run) -> pl.DataFrame:
+    """The run's aggregate rows (metric, value); identity columns come from eval.json, not the table."""
+    path = run.eval_dir / "metrics.parquet"
+    table = collect(scan_table(path, METRICS_COLUMNS, what="metrics table")
+                    .filter(pl.col("aggregate")).select("metric", "value"), path, "metrics table")
+    duplicated = table.filter(pl.col("metric").is_duplicated()).get_column("metric").unique().sort().to_list()
+    if duplicated:
+        raise DataError(f"more than one aggregate row for metric(s) {', '.join(duplicated)}", path)
+    return table
+
+
+def metrics_frame(runs: list[Run]) -> pl.DataFrame:
+    """One row per (run, metric) aggregate value with the run's identity: the input of every table."""
+    schema = {"run_index": pl.Int64, "run": pl.String, "model": pl.String, "dataset": pl.String,
+              "fold": pl.String, "seed": pl.Int64, "metric": pl.String, "value": pl.Float64}
+    frames = [run_metrics(run).with_columns(
+        run_index=pl.lit(index, pl.Int64), run=pl.lit(run.name), model=pl.lit(run.model),
+        dataset=pl.lit(run.dataset), fold=pl.lit(run.fold, pl.String), seed=pl.lit(run.seed, pl.Int64),
+    ).select(list(schema)) for index, run in enumerate(runs)]
+    return pl.concat(frames) if frames else pl.DataFrame(schema=schema)
+
+
+def scan_predictions(run: Run) -> pl.LazyFrame:
+    """The run's draws, lazily (they can be large: filter before collecting)."""
+    return scan_table(run.eval_dir / "predictions.parquet", PREDICTION_COLUMNS, what="predictions table")
+
+
+def scan_ground_truth(run: Run) -> pl.LazyFrame:
+    """The run's observed pasts and ground-truth futures, lazily."""
+    return scan_table(run.eval_dir / "ground_truth.parquet", GROUND_TRUTH_COLUMNS, what="ground-truth table")
+
+
+def load_train_log(run: Run) -> pl.DataFrame | None:
+    """The run's training log (epoch, stage, train_loss, val_loss), or None when the run has none (e.g. cv)."""
+    for name in TRAIN_LOGS:
+        path = run.path / name
+        if not path.is_file():
+            continue
+        try:
+            frame = (pl.scan_csv(path, schema_overrides=_CSV_LOG_TYPES) if path.suffix == ".csv"
+                     else pl.scan_parquet(path))
+        except (pl.exceptions.PolarsError, OSError) as error:
+            raise DataError(f"unreadable training log ({error})", path) from None
+        frame = _conform(frame, path, TRAIN_LOG_COLUMNS, TRAIN_LOG_OPTIONAL, what="training log")
+        if "val_loss" not in frame.collect_schema():
+            frame = frame.with_columns(val_loss=pl.lit(None, pl.Float64))
+        return collect(frame.select("epoch", "stage", "train_loss", "val_loss"), path, "training log")
+    return None

@@ -1,0 +1,154 @@
+"""Aggregate per-run metric values into the report's tables: mean ± std over folds and seeds, per-fold breakdowns,
+and the paper targets.
+
+The input is :func:`collect.metrics_frame`: one aggregate value per (run, metric). Standard deviations are
+population standard deviations over runs (ddof = 0, numpy's default, which is how mean ± std over seeds /
+folds is usually reported); a single run shows its value without ± part. Every metric is lower-is-better.
+"""
+
+from __future__ import annotations
+
+import math
+
+import polars as pl
+
+from .document import Cell, Table
+from .paper import OUR_TRAJFLOW, PAPER_TRAJFLOW, MetricSpec, metric_columns, model_label, model_order
+
+MISSING = "—"
+PAPER_LABEL = "TrajFlow (paper)"
+
+
+def summary_stats(metrics: pl.DataFrame) -> pl.DataFrame:
+    """Mean, std (over runs, ddof 0) and run count per (dataset, model, metric)."""
+    return (metrics.group_by("dataset", "model", "metric")
+            .agg(pl.col("value").mean().alias("mean"), pl.col("value").std(ddof=0).alias("std"),
+                 pl.len().alias("runs"))
+            .sort("dataset", "model", "metric"))
+
+
+def fold_stats(metrics: pl.DataFrame) -> pl.DataFrame:
+    """Mean over seeds and seed count per (dataset, fold, model, metric)."""
+    return (metrics.group_by("dataset", "fold", "model", "metric")
+            .agg(pl.col("value").mean().alias("mean"), pl.len().alias("seeds"))
+            .sort("dataset", "fold", "model", "metric", nulls_last=False))
+
+
+def format_value(value: float | None, decimals: int) -> str:
+    """A number with the metric's decimals; the dash for missing values."""
+    if value is None:
+        return MISSING
+    if math.isnan(value) or math.isinf(value):
+        return str(value)
+    return f"{value:.{decimals}f}"
+
+
+def format_mean_std(mean: float | None, std: float | None, runs: int, decimals: int) -> str:
+    """`mean ± std` (just the mean for a single run)."""
+    if mean is None:
+        return MISSING
+    if runs < 2 or std is None:
+        return format_value(mean, decimals)
+    return f"{format_value(mean, decimals)} ± {format_value(std, decimals)}"
+
+
+def _best(values: list[float | None]) -> float | None:
+    """The lowest finite value of a column (None when there is none)."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return min(finite) if finite else None
+
+
+def _pivot(stats: pl.DataFrame, index: str, field: str) -> dict[tuple[str | None, str], float | int | None]:
+    """(index value, metric) -> field, from a long stats frame."""
+    return {(row[index], row["metric"]): row[field] for row in stats.iter_rows(named=True)}
+
+
+def metric_header(spec: MetricSpec, k: int | None) -> str:
+    """Column label; minADE / minFDE carry their K when all runs of the section share it."""
+    if k is not None and spec.name.startswith(("min_ade", "min_fde")):
+        return f"{spec.label} (K={k})"
+    return spec.label
+
+
+def summary_table(stats: pl.DataFrame, dataset: str, k: int | None = None) -> Table:
+    """One row per model (mean ± std over runs), the best mean per column in bold, then the paper's TrajFlow row.
+
+    `stats` is :func:`summary_stats` restricted to `dataset`.
+    """
+    columns = metric_columns(stats.get_column("metric").to_list())
+    models = model_order(stats.get_column("model").to_list())
+    mean, std, runs = _pivot(stats, "model", "mean"), _pivot(stats, "model", "std"), _pivot(stats, "model", "runs")
+    run_count = dict(stats.group_by("model").agg(pl.col("runs").max()).iter_rows())
+    best = {spec.name: _best([mean.get((m, spec.name)) for m in models]) for spec in columns}
+    rows = [
+        (Cell(model_label(model)), Cell(str(run_count[model])),
+         *(Cell(format_mean_std(mean.get((model, spec.name)), std.get((model, spec.name)),
+                                int(runs.get((model, spec.name)) or 0), spec.decimals),
+                bold=best[spec.name] is not None and mean.get((model, spec.name)) == best[spec.name])
+           for spec in columns))
+        for model in models
+    ]
+    paper = PAPER_TRAJFLOW.get(dataset)
+    if paper is not None:
+        rows.append((Cell(PAPER_LABEL), Cell("paper"),
+                     *(Cell(format_value(paper.get(spec.name), spec.decimals)) for spec in columns)))
+    return Table(header=("model", "runs", *(metric_header(spec, k) for spec in columns)), rows=tuple(rows),
+                 numeric=(False, True, *(True for _ in columns)),
+                 caption="mean ± std over folds and seeds (std over runs); bold: best of our models per column "
+                         "(lower is better)" + ("; last row: the paper's TrajFlow" if paper else ""))
+
+
+def fold_tables(stats: pl.DataFrame) -> list[tuple[MetricSpec, Table]]:
+    """Per metric, a fold × model table of means over seeds, the best per fold in bold.
+
+    `stats` is :func:`fold_stats` restricted to one dataset; metrics nobody evaluated get no table. When cells
+    average different numbers of seeds, each cell shows its count in parentheses.
+    """
+    tables = []
+    models = model_order(stats.get_column("model").to_list())
+    folds = sorted(stats.get_column("fold").unique().to_list(), key=lambda f: (f is not None, f or ""))
+    for spec in metric_columns(stats.get_column("metric").to_list()):
+        part = stats.filter(pl.col("metric") == spec.name)
+        if part.is_empty():
+            continue
+        mean = {(row["fold"], row["model"]): row["mean"] for row in part.iter_rows(named=True)}
+        seeds = {(row["fold"], row["model"]): row["seeds"] for row in part.iter_rows(named=True)}
+        uneven = len(set(seeds.values())) > 1
+        rows = []
+        for fold in folds:
+            best = _best([mean.get((fold, m)) for m in models])
+            rows.append((Cell(MISSING if fold is None else fold),
+                         *(Cell(format_value(mean.get((fold, m)), spec.decimals)
+                                + (f" ({seeds[(fold, m)]})" if uneven and (fold, m) in seeds else ""),
+                                bold=best is not None and mean.get((fold, m)) == best) for m in models)))
+        count = "" if uneven else f" ({next(iter(seeds.values()))} per cell)"
+        tables.append((spec, Table(header=("fold", *(model_label(m) for m in models)), rows=tuple(rows),
+                                   numeric=(False, *(True for _ in models)),
+                                   caption=f"{spec.label}: mean over seeds{count}"
+                                           + ("; seeds per cell in parentheses" if uneven else "")
+                                           + "; bold: best per fold")))
+    return tables
+
+
+def targets(stats: pl.DataFrame, dataset: str) -> list[str]:
+    """Plain sentences: does our TrajFlow mean meet (≤) the paper's value, metric by metric?"""
+    paper = PAPER_TRAJFLOW.get(dataset)
+    if paper is None:
+        return [f"The paper reports no TrajFlow results for `{dataset}`; no targets to check."]
+    ours = dict(stats.filter(pl.col("model") == OUR_TRAJFLOW).select("metric", "mean").iter_rows())
+    if not ours:
+        return ["No TrajFlow (`trajflow`) runs for this dataset; the paper targets were not checked."]
+    lines = []
+    for spec in metric_columns(list(paper)):
+        if spec.name not in paper:
+            continue
+        target, value = paper[spec.name], ours.get(spec.name)
+        if value is None:
+            lines.append(f"{spec.label}: not evaluated (paper {target:g}).")
+        elif math.isfinite(value) and value <= target:
+            lines.append(f"{spec.label}: MET — our TrajFlow {value:.4g} ≤ paper {target:g}.")
+        elif not math.isfinite(value):
+            lines.append(f"{spec.label}: NOT MET — our TrajFlow mean is {value} (paper {target:g}).")
+        else:
+            lines.append(f"{spec.label}: NOT MET — our TrajFlow {value:.4g} > paper {target:g}.")
+    return lines

@@ -1,0 +1,335 @@
+"""`trajflow report RUN_OR_EXPERIMENT... -o REPORT`: tables, figures and provenance of evaluated runs.
+
+REPORT is written atomically (a complete new report replaces an older one, or nothing changes) and holds:
+
+* ``report.md``    GitHub Markdown; figures linked from ``figures/``;
+* ``report.html``  the same content, self-contained (CSS inline, figures as base64 data URIs);
+* ``figures/*.png`` examples with drawn futures, the synthetic-bimodal density panel, training curves, minADE(K);
+* ``report.json``  the numbers behind the tables and the runs they came from, for scripts.
+
+Per dataset (never one mixed table): one row per model, mean ± std over folds and seeds of each run's aggregate
+metric values, the best in bold, the paper's TrajFlow row and plain "met / not met" target lines; per-fold
+breakdowns; then the figures. A provenance section lists, for every run, what produced its numbers.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+from rich.progress import Progress
+
+from .. import __version__
+from ..errors import TrajflowError, UsageError
+from ..report.collect import (Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs,
+                              scan_ground_truth, scan_predictions)
+from ..report.curves import min_ade_curve
+from ..report.document import Block, Bullets, Cell, Code, Figure, Heading, Paragraph, Table
+from ..report.figures import plot_density, plot_examples, plot_min_ade_k, plot_training
+from ..report.paper import dataset_label, dataset_order, model_label, model_order
+from ..report.render import slug, to_html, to_markdown
+from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
+from ..report.tables import fold_stats, fold_tables, summary_stats, summary_table, targets
+from ..util.atomic import atomic_directory
+from ..util.progress import make_progress
+
+REPORT_FILES = ("report.md", "report.html", "report.json")
+FIGURE_DIR = "figures"
+BIMODAL = "synthetic_bimodal"
+
+HOW_TO_READ = (
+    "minADE / minFDE: average / final displacement (m) of the best of K draws per agent (indep) or of the best "
+    "joint draw over the agents predicted together (joint).",
+    "NLL: negative log-likelihood (nats) of the ground-truth future under a ROME density fitted on the draws "
+    "(flattened future positions in metres), indep per agent and joint over agents predicted together.",
+    "JSD: Jensen–Shannon divergence between ground-truth and predicted futures within groups of identical "
+    "inputs, in [0, 1] (natural-log JSD / ln 2).",
+    "Every metric: lower is better. mean ± std: over all runs (folds × seeds) of a model, population std "
+    "(ddof 0); a single run shows its value alone. —: not evaluated.",
+)
+
+
+def _check_out(out: Path, run_paths: list[Path]) -> None:
+    """Refuse an output that would destroy an input run or anything other than an older report."""
+    target = out.resolve()
+    for path in run_paths:
+        resolved = path.resolve()
+        if resolved == target or target in resolved.parents:
+            raise TrajflowError(f"{out}: the report would replace the input run {path}; choose another --out")
+    if out.exists():
+        if not out.is_dir():
+            raise TrajflowError(f"{out}: exists and is not a directory; choose another --out")
+        if any(out.iterdir()) and not any((out / name).is_file() for name in REPORT_FILES):
+            raise TrajflowError(f"{out}: exists and is not a trajflow report; choose another --out or remove it")
+
+
+def _common(values: list[Any]) -> Any | None:
+    """The value shared by every element, or None when they differ (or the list is empty)."""
+    return values[0] if values and all(v == values[0] for v in values) else None
+
+
+def _plural(count: int, word: str) -> str:
+    """`1 run`, `2 runs`."""
+    return f"{count} {word}{'' if count == 1 else 's'}"
+
+
+def _counts(values: list[Any]) -> str:
+    """`a (n), b (m)` in descending frequency."""
+    return ", ".join(f"{value} ({count})" for value, count in Counter(values).most_common())
+
+
+def _describe(runs: list[Run]) -> str:
+    """One sentence saying which runs a dataset section aggregates."""
+    models = ", ".join(model_label(m) for m in model_order([r.model for r in runs]))
+    folds = sorted({r.fold for r in runs if r.fold is not None})
+    seeds = sorted({r.seed for r in runs})
+    parts = [f"{_plural(len(runs), 'run')} ({models})",
+             f"folds {', '.join(folds)}" if folds else "no folds (one test set)",
+             f"seeds {', '.join(map(str, seeds))}"]
+    draws, k = _common([r.draws for r in runs]), _common([r.k for r in runs])
+    if draws is not None:
+        parts.append(f"{draws} draws per problem")
+    if k is not None:
+        parts.append(f"minADE/minFDE over K = {k} of them")
+    return "; ".join(parts) + "."
+
+
+def _consistency_notes(runs: list[Run]) -> list[str]:
+    """Warnings about runs that should not silently be averaged together."""
+    notes = []
+    if len({r.k for r in runs}) > 1:
+        notes.append(f"Runs use different K: {_counts([r.k for r in runs])}; minADE/minFDE mix them.")
+    if len({r.draws for r in runs}) > 1:
+        notes.append(f"Runs use different numbers of draws: {_counts([r.draws for r in runs])}.")
+    repeated = Counter((r.model, r.fold, r.seed) for r in runs)
+    for (model, fold, seed), count in sorted(repeated.items(), key=str):
+        if count > 1:
+            notes.append(f"{model_label(model)} fold {fold or '—'} seed {seed} appears in {count} runs; each counts "
+                         "in mean ± std.")
+    return notes
+
+
+def _example_figure(dataset: str, refs: dict[str, Run], max_examples: int) -> Figure | None:
+    """Chosen samples × models: past, all ground-truth futures of the group, draws by likelihood."""
+    first = next(iter(refs.values()))
+    index = collect(scan_ground_truth(first).select("sample_id", "group_id"),
+                    first.eval_dir / "ground_truth.parquet")
+    sample_ids = choose_examples(index, max_examples)
+    if not sample_ids:
+        return None
+    panels = {model: example_panels(run, sample_ids) for model, run in refs.items()}
+    rows = [[panels[model].get(sample_id) for model in refs] for sample_id in sample_ids]
+    shown = "; ".join(f"{model_label(m)}: {r.name} ({r.label})" for m, r in refs.items())
+    labels = sorted({str(r.info.get("log_lik_label", "model space")) for r in refs.values()})
+    caption = (f"{dataset_label(dataset)}: example predictions. Past solid black (dot: last observed position), "
+               f"ground truth dashed (every future of the sample's group for multi-future data), draws coloured "
+               f"and faded by their log-likelihood (in {', '.join(labels)}; relative within each panel). "
+               f"Runs: {shown}.")
+    png = plot_examples(rows, list(refs), f"{dataset_label(dataset)}: examples")
+    return Figure(f"{FIGURE_DIR}/{slug(dataset)}-examples.png", png, f"{dataset_label(dataset)}: examples", caption)
+
+
+def _density_figure(dataset: str, refs: dict[str, Run]) -> Figure | None:
+    """Paper Fig. 3 for the synthetic bimodal set: ground truth vs each model's draws, coloured by density."""
+    data = density_data(refs)
+    if data is None:
+        return None
+    png = plot_density(data, f"{dataset_label(dataset)}: ground truth vs predicted futures")
+    caption = (f"Positions of all future steps: the {data.futures} ground-truth futures of group {data.group_id} "
+               f"and up to 3000 draws per model pooled over the group's samples (identical inputs), each point "
+               f"coloured by a Gaussian kernel density of its panel's points (paper Fig. 3); shared extent. Runs: "
+               + "; ".join(f"{model_label(m)}: {r.name}" for m, r in refs.items()) + ".")
+    return Figure(f"{FIGURE_DIR}/{slug(dataset)}-density.png", png, f"{dataset_label(dataset)}: density", caption)
+
+
+def _training_figures(dataset: str, runs: list[Run]) -> tuple[list[Figure], list[str]]:
+    """Training curves per model (one panel per stage, one colour per run) and the models without logs."""
+    figures, missing = [], []
+    for model in model_order([r.model for r in runs]):
+        members = sorted((r for r in runs if r.model == model), key=lambda r: (r.fold or "", r.seed))
+        logs = [(r.label, log) for r in members if (log := load_train_log(r)) is not None and not log.is_empty()]
+        if not logs:
+            missing.append(model_label(model))
+            continue
+        png = plot_training(logs, f"{dataset_label(dataset)}: {model_label(model)} training")
+        caption = (f"{model_label(model)} on {dataset_label(dataset)}: training (solid) and validation (dashed) "
+                   f"loss per epoch, one panel per stage, {len(logs)} of {len(members)} runs with a log.")
+        figures.append(Figure(f"{FIGURE_DIR}/{slug(dataset)}-training-{slug(model)}.png", png,
+                              f"{dataset_label(dataset)}: {model_label(model)} training", caption))
+    return figures, missing
+
+
+def _k_curve_figure(dataset: str, runs: list[Run], progress: Progress) -> Figure | None:
+    """Expected minADE_K for K = 1..S per model: mean over its runs (band: std over runs)."""
+    task = progress.add_task(f"{dataset}: minADE(K)", total=len(runs))
+    curves = []
+    for model in model_order([r.model for r in runs]):
+        per_run = []
+        for run in (r for r in runs if r.model == model):
+            curve = min_ade_curve(scan_predictions(run), scan_ground_truth(run),
+                                  run.eval_dir / "predictions.parquet")
+            per_run.extend([curve] if curve.size else [])
+            progress.advance(task)
+        if per_run:
+            length = min(c.size for c in per_run)
+            stacked = np.stack([c[:length] for c in per_run])
+            curves.append((model, stacked.mean(axis=0), stacked.std(axis=0) if len(per_run) > 1 else None))
+    progress.remove_task(task)
+    if not curves:
+        return None
+    k = _common([r.k for r in runs])
+    png = plot_min_ade_k(curves, k, f"{dataset_label(dataset)}: minADE vs K")
+    caption = ("Expected minADE_K over random K-subsets of each problem's draws (exact, from the sorted per-draw "
+               "ADEs), K = 1..S, mean over problems; line: mean over a model's runs, band: ± std over runs.")
+    return Figure(f"{FIGURE_DIR}/{slug(dataset)}-min-ade-vs-k.png", png, f"{dataset_label(dataset)}: minADE vs K",
+                  caption)
+
+
+def _figures(dataset: str, runs: list[Run], max_examples: int, progress: Progress) -> list[Block]:
+    """Every figure of one dataset section, with its heading."""
+    refs = reference_runs(runs)
+    blocks: list[Block] = [Heading(3, "Figures")]
+    found = [_example_figure(dataset, refs, max_examples) if max_examples else None,
+             _density_figure(dataset, refs) if dataset == BIMODAL else None]
+    training, without_logs = _training_figures(dataset, runs)
+    found += [*training, _k_curve_figure(dataset, runs, progress)]
+    blocks += [figure for figure in found if figure is not None]
+    if without_logs:
+        blocks.append(Paragraph(f"No training log (train_log.csv / .parquet) for: {', '.join(without_logs)}."))
+    return blocks
+
+
+def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_fold: pl.DataFrame, *,
+                     figures: bool, max_examples: int, progress: Progress) -> list[Block]:
+    """Tables, targets and figures of one dataset."""
+    label = dataset_label(dataset)
+    title = label if label == dataset else f"{label} (`{dataset}`)"
+    stats = summary.filter(pl.col("dataset") == dataset)
+    blocks: list[Block] = [Heading(2, title, anchor=slug(dataset)), Paragraph(_describe(runs))]
+    notes = _consistency_notes(runs)
+    if notes:
+        blocks.append(Bullets(tuple(f"Note: {n}" for n in notes)))
+    blocks += [Heading(3, "Results"), summary_table(stats, dataset, _common([r.k for r in runs])),
+               Heading(3, "Paper targets (our TrajFlow mean vs the paper's, lower is better)"),
+               Bullets(tuple(targets(stats, dataset)))]
+    if any(r.fold is not None for r in runs):
+        blocks.append(Heading(3, "Per fold"))
+        for spec, table in fold_tables(per_fold.filter(pl.col("dataset") == dataset)):
+            blocks += [Heading(4, spec.label), table]
+    if figures:
+        blocks += _figures(dataset, runs, max_examples, progress)
+    return blocks
+
+
+def _fingerprint_text(fingerprint: Any) -> str:
+    """Short form of a data fingerprint for the provenance table (long hashes cut to 12 characters)."""
+    if not isinstance(fingerprint, dict) or not fingerprint:
+        return "—"
+    shown = {k: str(v) for k, v in fingerprint.items() if k != "path"}
+    return ", ".join(f"{k}={v[:12] + '…' if len(v) > 16 else v}" for k, v in shown.items())
+
+
+def _provenance(runs: list[Run]) -> list[Block]:
+    """For every run: model, dataset, fold, seed, date, version, data fingerprint, and the full config."""
+    header = ("run", "model", "dataset", "fold", "seed", "draws", "K", "evaluated", "trajflow", "data", "path")
+    rows = tuple(tuple(Cell(str(v)) for v in (
+        run.name, run.model, run.dataset, run.fold or "—", run.seed, run.draws or "—", run.k or "—",
+        run.info.get("date", "—"), run.info.get("trajflow_version", "—"),
+        _fingerprint_text(run.info.get("data_fingerprint")), run.path)) for run in runs)
+    blocks: list[Block] = [
+        Heading(2, "Provenance", anchor="provenance"),
+        Paragraph("What produced every number: each run's eval.json (model, data fingerprint, seed, trajflow "
+                  "version, date) and its resolved training config."),
+        Table(header=header, rows=rows, numeric=(False,) * 4 + (True,) * 3 + (False,) * 4),
+    ]
+    for run in runs:
+        details = {key: run.info.get(key) for key in ("data_fingerprint", "log_lik_label", "metrics", "workers",
+                                                      "seconds", "config") if key in run.info}
+        blocks.append(Code(json.dumps(details, indent=2, default=str), "json",
+                           f"Config and data fingerprint of {run.name} ({model_label(run.model)}, {run.label})"))
+    return blocks
+
+
+def _json_safe(value: Any) -> Any:
+    """Non-finite floats as strings, so report.json is strict JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _header(runs: list[Run], inputs: list[Path], experiments: tuple[str, ...], notes: tuple[str, ...],
+            datasets: list[str], generated: str) -> list[Block]:
+    """Title, what the report covers, how to read the numbers, and the contents."""
+    source = f" from experiment{'s' if len(experiments) > 1 else ''} {', '.join(experiments)}" if experiments else ""
+    labels = sorted({str(r.info["log_lik_label"]) for r in runs if r.info.get("log_lik_label")})
+    reading = [*HOW_TO_READ]
+    if labels:
+        reading.append(f"Draw log-likelihoods in the figures are each model's own density ({', '.join(labels)}), "
+                       "not a density over world trajectories; they only rank draws within a panel.")
+    blocks: list[Block] = [
+        Heading(1, "trajflow report"),
+        Paragraph(f"{_plural(len(runs), 'evaluated run')} of {_plural(len(datasets), 'dataset')}{source}; "
+                  f"generated {generated} by trajflow "
+                  f"{__version__} from: {', '.join(f'`{p}`' for p in inputs)}."),
+    ]
+    if notes:
+        blocks.append(Bullets(tuple(f"Note: {n}" for n in notes)))
+    blocks += [Heading(3, "How to read it"), Bullets(tuple(reading)), Heading(3, "Contents"),
+               Bullets(tuple(f"{dataset_label(d)} ({_plural(sum(r.dataset == d for r in runs), 'run')})"
+                             for d in datasets) + ("Provenance",))]
+    return blocks
+
+
+def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool = True,
+           max_examples: int = 4) -> Path:
+    """Write the report of the evaluated runs / experiments in `inputs` to the directory `out`; returns `out`."""
+    if max_examples < 0:
+        raise UsageError(f"--examples must be 0 or more, got {max_examples}")
+    inputs, out = [Path(p) for p in inputs], Path(out)
+    resolved = resolve_inputs(inputs)
+    _check_out(out, [path for path, _ in resolved.runs])
+    generated = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    with make_progress(quiet) as progress:
+        task = progress.add_task("reading runs", total=len(resolved.runs))
+        runs = []
+        for path, experiment in resolved.runs:
+            runs.append(load_run(path, experiment))
+            progress.advance(task)
+        metrics = metrics_frame(runs)
+        summary, per_fold = summary_stats(metrics), fold_stats(metrics)
+        datasets = dataset_order([r.dataset for r in runs])
+        blocks = _header(runs, inputs, resolved.experiments, resolved.notes, datasets, generated)
+        sections = progress.add_task("building report", total=len(datasets))
+        for dataset in datasets:
+            blocks += _dataset_section(dataset, [r for r in runs if r.dataset == dataset], summary, per_fold,
+                                       figures=figures, max_examples=max_examples, progress=progress)
+            progress.advance(sections)
+    blocks += _provenance(runs)
+    pictures = [block for block in blocks if isinstance(block, Figure)]
+    machine = {
+        "trajflow_version": __version__, "generated": generated, "inputs": [str(p) for p in inputs],
+        "experiments": list(resolved.experiments),
+        "runs": [{"path": str(r.path), "run": r.name, "model": r.model, "dataset": r.dataset, "fold": r.fold,
+                  "seed": r.seed} for r in runs],
+        "summary": summary.rows(named=True), "per_fold": per_fold.rows(named=True),
+        "figures": [figure.path for figure in pictures],
+    }
+    with atomic_directory(out) as tmp:
+        (tmp / FIGURE_DIR).mkdir()
+        for figure in pictures:
+            (tmp / figure.path).write_bytes(figure.png)
+        (tmp / "report.md").write_text(to_markdown(blocks), encoding="utf-8")
+        (tmp / "report.html").write_text(to_html(blocks, "trajflow report"), encoding="utf-8")
+        (tmp / "report.json").write_text(json.dumps(_json_safe(machine), indent=2, default=str) + "\n",
+                                         encoding="utf-8")
+    return out
