@@ -58,6 +58,9 @@ def select_samples(ds: Dataset, fold: str | None, split: str) -> pl.DataFrame:
     if split not in SPLITS:
         raise UsageError(f"unknown split '{split}'; choose one of {', '.join(SPLITS)}")
     samples = ds.samples()
+    if split == "test" and "train_only" in samples.columns:
+        # augmented copies (`trajflow augment scale-rotate`) train; they are never test problems
+        samples = samples.filter(~pl.col("train_only").fill_null(False))
     protocol = ds.meta.protocol
     if protocol == PROTOCOL_FOLDS:
         folds = list_folds(ds)
