@@ -21,6 +21,7 @@ from ..errors import DataError, UsageError
 from ..model.batch import SceneBatch
 from ..schemas import AGENT_TYPES, PROTOCOL_FIXED, PROTOCOL_FOLDS, PROTOCOL_TRAIN_IS_TEST, Dataset, open_dataset
 from ..schemas.tables import SPLITS
+from .maps import crops_for_problems, past_headings
 
 
 @dataclass
@@ -162,11 +163,17 @@ def build_problems(ds: Dataset, samples: pl.DataFrame) -> Problems:
     context = _neighbours(samples, tracks, n_past)
     scenes = ds.scenes()
     has_map = "map_path" in scenes.columns and scenes.get_column("map_path").null_count() < scenes.height
+    map_crop = None
+    if has_map:
+        past = window[:, :n_past]
+        map_crop = torch.from_numpy(crops_for_problems(ds.path, samples.get_column("scene_id").to_numpy(),
+                                                       past[:, -1], past_headings(past)))
     batch = SceneBatch(
         past=torch.from_numpy(window[:, :n_past].astype(np.float32)),
         future=torch.from_numpy(window[:, n_past:].astype(np.float32)),
         agent_type=torch.from_numpy(np.array(target_type, dtype=np.int64)),
         **{name: torch.from_numpy(value) for name, value in context.items()},
+        map_crop=map_crop,
     )
     joint = samples.get_column("joint_id") if "joint_id" in samples.columns else samples.get_column("sample_id")
     return Problems(

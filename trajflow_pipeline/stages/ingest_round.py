@@ -1,0 +1,676 @@
+"""`trajflow ingest round`: rounD (levelX format) gap-acceptance scenarios as a unified Parquet dataset, with maps.
+
+Input, per recording XX (25 Hz): ``XX_recordingMeta.csv``, ``XX_tracksMeta.csv``, ``XX_tracks.csv`` and
+``XX_background.png``. A folder (or its ``data/`` sub-folder), a selection of its recordings, or one recording's
+file may be given. Recordings are read, resampled, searched and written one at a time, so memory is bounded by
+one recording (plus the writer's shard buffer), never by the dataset.
+
+Tracks: every road user of every recording, resampled from 25 Hz to dt = 0.2 s by keeping every 5th raw frame
+(frame = raw frame / 5); class -> agent_type (car, van, truck, bus, trailer -> vehicle; motorcycle; bicycle;
+pedestrian; anything else -> unknown; the raw class is kept in ``agent_class``); heading in radians wrapped to
+[-pi, pi); vx / vy from xVelocity / yVelocity; length / width from the tracks file.
+
+Samples follow the gap-acceptance definition of Schumann et al. (2023) for rounD, which TrajFlow (section VI-A)
+evaluates on, applied to the 5 Hz tracks and a :class:`RoundaboutGeometry` (inferred per recording from its
+circulating traffic unless given per location):
+
+* target: a motor vehicle (car, van, truck, bus, motorcycle) that starts more than ``approach_margin`` outside the
+  carriageway (r > R + margin), enters it (r < R; the first such frame is t_A) and never drives over the island;
+* its entry direction phi is the direction of its approach arm (from where it reaches R + margin back to its
+  first position); angles psi of other vehicles are measured from phi in the circulation direction;
+* ego: another motor vehicle, present by t_A, that enters the conflict zone (r <= R, 0 < psi < conflict_angle,
+  i.e. the carriageway just downstream of the target's arm) from inside the carriageway at frame t_C while the
+  target is recorded. t_C <= t_A: the target let the ego pass (a *rejected* gap; every such ego is a situation);
+  the first ego with t_C > t_A is the one the target cut in front of (the *accepted* gap);
+* decision: t_A for an accepted gap, t_C for a rejected one. The gap is open (undecided) while the ego circulates
+  in position (R - ego_band <= r <= R) upstream of the arm (psi < 0) and the target is still outside (r > R);
+  t_S is the first frame of the last undecided run before the decision;
+* prediction time t0 = max(t_S, first frame with 15 past frames of both vehicles) (the framework's ``start``
+  prediction time, relaxed to have a full past); kept when t0 < decision and both vehicles are recorded for 25
+  more frames;
+* both target and ego are predicted: two samples with the same ``t0_frame`` and ``joint_id``; every other road
+  user present at t0 is context (the tracks hold them with their classes);
+* horizon: ``n_future`` = 25 for every sample (the model's trained horizon); ``n_future_max`` is the horizon the
+  decision needs, as in the framework: max(25, min(2 * n_past, t_C - t0) + 5) steps, i.e. until 1 s after the ego
+  would reach the conflict zone, at most 35, and at most what both tracks hold. The tracks hold every row, so a
+  loader can read ``n_future_max`` future positions to test extrapolation.
+
+Extra sample columns: ``role`` (target / ego), ``partner_id`` (the other predicted vehicle), ``gap`` (accepted /
+rejected), ``decision_frame``, ``conflict_frame`` (t_C), ``entry_arm`` (index into the geometry's entry arms, -1 if
+none), ``n_future_max`` and ``situation_id``.
+
+Folds: a situation is one target's entering manoeuvre -- every gap it rejected and the one it accepted, each with
+its ego (``situation_id``). Situations are dealt round-robin into folds "0".."4" in a seeded random order and a
+seeded 10 % of them are ``val``, the rest ``train`` (protocol ``folds``), so the two samples of a pair and the
+overlapping samples of one target never straddle folds. (An ego may still appear in another target's situation
+in another fold; linking those too chains busy periods of a recording into a few giant situations and leaves the
+folds unbalanced.)
+
+Maps: each background image is converted to grey-scale and stored once (by content) as ``maps/<hash>.png``;
+``scenes.map_m_per_px`` = orthoPxToMeter * 10 (the levelX tools show rounD backgrounds downscaled by 10) and
+``scenes.map_world_to_px`` = [1/s, 0, 0, 0, -1/s, 0] (image rows grow downwards while y grows upwards; pixel
+coordinates are integers at pixel centres).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+from PIL import Image, UnidentifiedImageError
+
+from ..errors import DataError, UsageError
+from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..util.progress import console, make_progress
+from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
+from .windows import GROUP_TOLERANCE_M, _window_hashes
+
+DATASET = "round"
+DT = 0.2
+N_PAST, N_FUTURE, N_FUTURE_MAX = 15, 25, 35
+#: the decision horizon counts at most this many steps, plus HORIZON_MARGIN (Schumann et al.: 2 * n_past)
+DECISION_HORIZON_CAP = 2 * N_PAST
+HORIZON_MARGIN = 5
+#: the levelX tools display rounD backgrounds downscaled by this factor: metres per pixel = orthoPxToMeter * 10
+BACKGROUND_SCALE_DOWN = 10
+#: fewer positions than this inside the background image means its scale convention does not fit the tracks
+MIN_INSIDE_IMAGE = 0.9
+FOLDS = 5
+VAL_FRACTION = 0.1
+SPLIT_SEED = 0
+SHARD_ROWS = 500_000
+
+CLASS_TYPES: dict[str, str] = {"car": "vehicle", "van": "vehicle", "truck": "vehicle", "bus": "vehicle",
+                               "trailer": "vehicle", "truck_bus": "vehicle", "motorcycle": "motorcycle",
+                               "bicycle": "bicycle", "pedestrian": "pedestrian"}
+#: classes that can be target or ego (a trailer rides behind its tractor; VRUs are context only)
+MOTOR_CLASSES = ("car", "van", "truck", "bus", "truck_bus", "motorcycle")
+
+RECORDING_META_COLUMNS: dict[str, pl.DataType] = {
+    "recordingId": pl.Int64(), "locationId": pl.Int64(), "frameRate": pl.Float64(), "orthoPxToMeter": pl.Float64()}
+TRACKS_META_COLUMNS: dict[str, pl.DataType] = {
+    "trackId": pl.Int64(), "initialFrame": pl.Int64(), "finalFrame": pl.Int64(), "numFrames": pl.Int64(),
+    "class": pl.String()}
+TRACKS_COLUMNS: dict[str, pl.DataType] = {
+    "trackId": pl.Int64(), "frame": pl.Int64(), "xCenter": pl.Float64(), "yCenter": pl.Float64(),
+    "heading": pl.Float64(), "width": pl.Float64(), "length": pl.Float64(), "xVelocity": pl.Float64(),
+    "yVelocity": pl.Float64()}
+FILE_KINDS = ("recordingMeta.csv", "tracksMeta.csv", "tracks.csv", "background.png")
+SAMPLE_SCHEMA = {"sample_id": pl.Int64, "scene_id": pl.String, "agent_id": pl.Int64, "t0_frame": pl.Int64,
+                 "n_past": pl.Int64, "n_future": pl.Int64, "group_id": pl.Int64, "split": pl.String,
+                 "fold": pl.String, "joint_id": pl.Int64, "n_future_max": pl.Int64, "role": pl.String,
+                 "partner_id": pl.Int64, "gap": pl.String, "decision_frame": pl.Int64, "conflict_frame": pl.Int64,
+                 "entry_arm": pl.Int64, "situation_id": pl.Int64}
+#: scenes columns describing the roundabout geometry used -> RoundaboutGeometry field
+GEOMETRY_COLUMNS = {"centre_x": "centre_x", "centre_y": "centre_y", "inner_radius": "inner_radius",
+                    "outer_radius": "outer_radius", "circulation": "direction", "geometry_source": "source"}
+
+SCENE_SCHEMA = {"fold": pl.String, "map_world_to_px": pl.List(pl.Float64), "centre_x": pl.Float64,
+                "centre_y": pl.Float64, "inner_radius": pl.Float64, "outer_radius": pl.Float64,
+                "circulation": pl.Int64, "geometry_source": pl.String, "recording_id": pl.Int64,
+                "location_id": pl.Int64, "frame_rate": pl.Float64}
+_FILE_PATTERN = re.compile(r"^(\d+)_(recordingMeta\.csv|tracksMeta\.csv|tracks\.csv|background\.png)$")
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One levelX recording: its number, the folder holding its four files and their prefix ("07" in 07_*)."""
+
+    number: int
+    folder: Path
+    prefix: str = ""
+
+    def path(self, kind: str) -> Path:
+        return self.folder / f"{self.prefix or f'{self.number:02d}'}_{kind}"
+
+    @property
+    def scene_id(self) -> str:
+        return f"rec{self.number:02d}"
+
+
+@dataclass(frozen=True)
+class RecordingMeta:
+    """What the ingest needs from XX_recordingMeta.csv."""
+
+    recording_id: int
+    location_id: int
+    frame_rate: float
+    ortho_px_to_meter: float
+
+
+@dataclass
+class RecordingResult:
+    """One recording's contribution: its tracks, scene row, samples and a summary for the lineage."""
+
+    tracks: pl.DataFrame
+    scene: dict[str, Any]
+    samples: pl.DataFrame
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def _warn(message: str, warnings: list[str]) -> None:
+    """Show a warning on stderr (even under --quiet: it changes what the dataset holds) and keep it."""
+    warnings.append(message)
+    console.print(f"[bold yellow]warning:[/] {message}", highlight=False, soft_wrap=True)
+
+
+# --------------------------------------------------------------------------------------------- discovering input
+
+
+def discover_recordings(raw: Path, recordings: Sequence[int | str] | None = None) -> list[Recording]:
+    """The recordings to read: all of a folder (or its data/ sub-folder), a selection, or one file's recording.
+
+    Every selected recording must have its four files; the list is sorted by recording number.
+    """
+    if not raw.exists():
+        raise DataError("raw rounD path not found", path=raw)
+    if raw.is_file():
+        match = _FILE_PATTERN.match(raw.name)
+        if match is None:
+            raise DataError("not a levelX recording file (expected XX_tracks.csv, XX_tracksMeta.csv, "
+                            "XX_recordingMeta.csv or XX_background.png)", path=raw)
+        folder, found = raw.parent, _prefixes_in(raw.parent)
+        wanted = {int(match.group(1))} if recordings is None else None
+    else:
+        folder = raw
+        found = _prefixes_in(folder)
+        if not found and (raw / "data").is_dir():
+            folder, found = raw / "data", _prefixes_in(raw / "data")
+        wanted = None
+    if not found:
+        raise DataError("no levelX recordings (XX_tracks.csv, XX_tracksMeta.csv, XX_recordingMeta.csv, "
+                        "XX_background.png) in this folder", path=raw)
+    if recordings is not None:
+        wanted = {_recording_number(value) for value in recordings}
+        unknown = sorted(wanted - set(found))
+        if unknown:
+            raise DataError(f"recording(s) {', '.join(f'{n:02d}' for n in unknown)} not found; found "
+                            f"{', '.join(f'{n:02d}' for n in sorted(found))}", path=folder)
+    selected = sorted((Recording(number, folder, found[number]) for number in (wanted if wanted is not None
+                                                                                  else found)),
+                      key=lambda recording: recording.scene_id)
+    for recording in selected:
+        for kind in FILE_KINDS:
+            if not recording.path(kind).is_file():
+                raise DataError(f"file is missing (every levelX recording needs XX_{', XX_'.join(FILE_KINDS)})",
+                                path=recording.path(kind))
+    return selected
+
+
+def _prefixes_in(folder: Path) -> dict[int, str]:
+    """Recording number -> file prefix of the levelX files in a folder ("07" for 07_tracks.csv)."""
+    matches = (_FILE_PATTERN.match(p.name) for p in sorted(folder.iterdir()))
+    return {int(m.group(1)): m.group(1) for m in matches if m}
+
+
+def _recording_number(value: int | str) -> int:
+    try:
+        number = int(str(value).strip())
+    except ValueError:
+        raise UsageError(f"--recording: {value!r} is not a recording number (e.g. 00 or 7)") from None
+    if number < 0:
+        raise UsageError(f"--recording: {value!r} is not a recording number")
+    return number
+
+
+# ------------------------------------------------------------------------------------------------- reading CSVs
+
+
+def _header(path: Path) -> list[str]:
+    try:
+        return pl.read_csv(path, n_rows=0).columns
+    except pl.exceptions.NoDataError:
+        raise DataError("file is empty", path=path) from None
+    except (pl.exceptions.PolarsError, OSError) as error:
+        raise DataError(f"cannot read CSV ({str(error).splitlines()[0]})", path=path) from None
+
+
+def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFrame:
+    """The named columns of a CSV file with their types, plus `__row` (0-based data row; line = row + 2).
+
+    A missing (or renamed) column, a cell that does not parse, an empty cell or a non-finite number raise a
+    DataError naming the file and, for cells, the line.
+    """
+    header = _header(path)
+    missing = [name for name in columns if name not in header]
+    if missing:
+        raise DataError(f"missing column(s) {', '.join(missing)}; found {', '.join(header)}", path=path)
+    try:
+        frame = pl.read_csv(path, columns=list(columns), schema_overrides=columns)
+    except (pl.exceptions.PolarsError, OSError):
+        raise _locate_bad_cell(path, columns) from None
+    frame = frame.select(list(columns)).with_row_index("__row")
+    bad = [pl.col(name).is_null() | (~pl.col(name).is_finite() if dtype == pl.Float64 else pl.lit(False))
+           for name, dtype in columns.items()]
+    flags = frame.select(pl.any_horizontal(bad).alias("bad")).to_series()
+    if flags.any():
+        row = frame.row(int(flags.arg_true()[0]), named=True)
+        name = next(n for n, d in columns.items() if row[n] is None or (d == pl.Float64 and not math.isfinite(row[n])))
+        problem = "is empty" if columns[name] == pl.String else "is empty or not a finite number"
+        raise DataError(f"column '{name}' {problem}", path=path, line=int(row["__row"]) + 2)
+    return frame
+
+
+def _locate_bad_cell(path: Path, columns: dict[str, pl.DataType]) -> DataError:
+    """Find the first cell that does not parse as its column's type (the slow path, only after a failure)."""
+    try:
+        text = pl.read_csv(path, columns=list(columns), infer_schema=False)
+    except (pl.exceptions.PolarsError, OSError) as error:
+        return DataError(f"cannot parse CSV ({str(error).splitlines()[0]})", path=path)
+    for name, dtype in columns.items():
+        if dtype == pl.String:
+            continue
+        raw = text.get_column(name).str.strip_chars()
+        parsed = raw.cast(pl.Float64, strict=False)
+        bad = parsed.is_null() & raw.is_not_null()
+        if dtype == pl.Int64:
+            bad = bad | (parsed.is_not_null() & (parsed != parsed.round()))
+        if bad.any():
+            row = int(bad.arg_true()[0])
+            kind = "a whole number" if dtype == pl.Int64 else "a number"
+            return DataError(f"column '{name}' holds {raw[row]!r}, not {kind}", path=path, line=row + 2)
+    return DataError("cannot parse CSV", path=path)
+
+
+def read_recording_meta(recording: Recording) -> RecordingMeta:
+    """recordingId, locationId, frameRate and orthoPxToMeter of a recording (its meta file has one row)."""
+    path = recording.path("recordingMeta.csv")
+    meta = read_csv_columns(path, RECORDING_META_COLUMNS)
+    if meta.height != 1:
+        raise DataError(f"expected exactly one data row, found {meta.height}", path=path)
+    row = meta.row(0, named=True)
+    if row["frameRate"] <= 0 or row["orthoPxToMeter"] <= 0:
+        raise DataError("frameRate and orthoPxToMeter must be positive", path=path, line=2)
+    return RecordingMeta(int(row["recordingId"]), int(row["locationId"]), float(row["frameRate"]),
+                         float(row["orthoPxToMeter"]))
+
+
+def read_tracks_meta(recording: Recording) -> pl.DataFrame:
+    """trackId, class and frame span of each track; track ids must be unique."""
+    path = recording.path("tracksMeta.csv")
+    meta = read_csv_columns(path, TRACKS_META_COLUMNS)
+    repeated = meta.filter(pl.col("trackId").is_duplicated())
+    if repeated.height:
+        first = repeated.row(0, named=True)
+        raise DataError(f"trackId {first['trackId']} appears more than once", path=path, line=first["__row"] + 2)
+    return meta.with_columns(pl.col("class").str.strip_chars().str.to_lowercase())
+
+
+def read_raw_tracks(recording: Recording, tracks_meta: pl.DataFrame) -> pl.DataFrame:
+    """All rows of XX_tracks.csv, checked: sorted by (trackId, frame), unique, contiguous, consistent with the
+    tracks meta file (every track listed there, with the same frame span)."""
+    path = recording.path("tracks.csv")
+    tracks = read_csv_columns(path, TRACKS_COLUMNS)
+    in_order = (pl.col("trackId") > pl.col("trackId").shift(1)) | (
+        (pl.col("trackId") == pl.col("trackId").shift(1)) & (pl.col("frame") >= pl.col("frame").shift(1)))
+    if not tracks.select(in_order.fill_null(True).all()).item():
+        tracks = tracks.sort("trackId", "frame")   # levelX files come sorted; sorting copies every column
+    same_track = pl.col("trackId") == pl.col("trackId").shift(1)
+    step = pl.col("frame") - pl.col("frame").shift(1)
+    problems = tracks.with_columns(previous=pl.col("frame").shift(1)).filter(same_track & (step != 1))
+    if problems.height:
+        first = problems.row(0, named=True)
+        if first["frame"] == first["previous"]:
+            raise DataError(f"track {first['trackId']} has two rows for frame {first['frame']}", path=path,
+                            line=first["__row"] + 2)
+        raise DataError(f"track {first['trackId']} jumps from frame {first['previous']} to frame {first['frame']}; "
+                        "the frames of a track must be contiguous", path=path, line=first["__row"] + 2)
+    spans = tracks.group_by("trackId").agg(pl.col("frame").min().alias("first"), pl.col("frame").max().alias("last"),
+                                           pl.col("__row").min().alias("row"))
+    unlisted = spans.join(tracks_meta, on="trackId", how="anti").sort("row")
+    if unlisted.height:
+        first = unlisted.row(0, named=True)
+        raise DataError(f"track {first['trackId']} is not listed in {recording.path('tracksMeta.csv').name}",
+                        path=path, line=first["row"] + 2)
+    compared = tracks_meta.join(spans, on="trackId", how="left").sort("__row")
+    wrong = compared.filter(pl.col("first").is_null() | (pl.col("first") != pl.col("initialFrame"))
+                            | (pl.col("last") != pl.col("finalFrame"))
+                            | (pl.col("numFrames") != pl.col("finalFrame") - pl.col("initialFrame") + 1))
+    if wrong.height:
+        first = wrong.row(0, named=True)
+        seen = "no rows" if first["first"] is None else f"frames {first['first']}..{first['last']}"
+        raise DataError(f"track {first['trackId']} spans frames {first['initialFrame']}..{first['finalFrame']} "
+                        f"({first['numFrames']} frames) here but has {seen} in {path.name}",
+                        path=recording.path("tracksMeta.csv"), line=first["__row"] + 2)
+    return tracks
+
+
+def resample(raw: pl.DataFrame, tracks_meta: pl.DataFrame, meta: RecordingMeta, recording: Recording) -> pl.DataFrame:
+    """Contract tracks at DT: every (frameRate * DT)-th raw frame, classes mapped, heading in radians."""
+    step = meta.frame_rate * DT
+    if abs(step - round(step)) > 1e-6 or round(step) < 1:
+        raise DataError(f"frameRate {meta.frame_rate:g} Hz cannot be resampled to {1 / DT:g} Hz by keeping every "
+                        f"n-th frame", path=recording.path("recordingMeta.csv"), line=2)
+    step = int(round(step))
+    kept = raw.filter(pl.col("frame") % step == 0).join(
+        tracks_meta.select("trackId", pl.col("class").alias("agent_class")), on="trackId", how="left")
+    frame = (pl.col("frame") // step).cast(pl.Int64)
+    return kept.select(
+        pl.lit(recording.scene_id).alias("scene_id"),
+        pl.col("trackId").alias("agent_id"),
+        pl.col("agent_class").replace_strict(CLASS_TYPES, default="unknown", return_dtype=pl.String)
+        .alias("agent_type"),
+        frame.alias("frame"),
+        (frame.cast(pl.Float64) * DT).alias("t"),
+        pl.col("xCenter").alias("x"), pl.col("yCenter").alias("y"),
+        ((pl.col("heading") + 180.0) % 360.0 - 180.0).radians().alias("heading"),
+        pl.col("xVelocity").alias("vx"), pl.col("yVelocity").alias("vy"),
+        "length", "width", "agent_class",
+    ).sort("agent_id", "frame")
+
+
+# ---------------------------------------------------------------------------------------------------------- maps
+
+
+def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks: pl.DataFrame,
+                   warnings: list[str]) -> dict[str, Any]:
+    """Store the recording's background as a grey-scale PNG under root/maps (once per distinct image) and return
+    the scene's map columns. Warns when the tracks do not fall on the image under the levelX convention."""
+    path = recording.path("background.png")
+    try:
+        with Image.open(path) as image:
+            grey = image.convert("L")
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as error:
+        raise DataError(f"cannot open the background image ({error})", path=path) from None
+    buffer = io.BytesIO()
+    grey.save(buffer, format="PNG")
+    data = buffer.getvalue()
+    name = f"maps/{hashlib.sha256(data).hexdigest()[:16]}.png"
+    target = root / name
+    if not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(data)
+    metres = meta.ortho_px_to_meter * BACKGROUND_SCALE_DOWN
+    affine = [1.0 / metres, 0.0, 0.0, 0.0, -1.0 / metres, 0.0]
+    if tracks.height:
+        width, height = grey.size
+        inside = tracks.select(((pl.col("x") * affine[0]).is_between(-0.5, width - 0.5)
+                                & (pl.col("y") * affine[4]).is_between(-0.5, height - 0.5)).mean()).item()
+        if inside < MIN_INSIDE_IMAGE:
+            _warn(f"{path}: only {inside:.0%} of the positions fall on the image with metres per pixel = "
+                  f"orthoPxToMeter * {BACKGROUND_SCALE_DOWN} and pixel = (x, -y) / scale; map crops may be "
+                  "misaligned", warnings)
+    return {"map_path": name, "map_m_per_px": metres, "map_world_to_px": affine}
+
+
+# -------------------------------------------------------------------------------------------------- scenarios
+
+
+def _wrap(angle: pl.Expr) -> pl.Expr:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def _polar(frame: pl.DataFrame, geometry: RoundaboutGeometry) -> pl.DataFrame:
+    dx, dy = pl.col("x") - geometry.centre_x, pl.col("y") - geometry.centre_y
+    return frame.with_columns(r=(dx ** 2 + dy ** 2).sqrt(), theta=pl.arctan2(dy, dx))
+
+
+def motor_tracks(tracks: pl.DataFrame) -> pl.DataFrame:
+    """Rows of the vehicles that can be target or ego, sorted by (agent_id, frame)."""
+    return tracks.filter(pl.col("agent_class").is_in(MOTOR_CLASSES)).select("agent_id", "frame", "x", "y", "vx", "vy")
+
+
+def _targets(motor: pl.DataFrame, geometry: RoundaboutGeometry) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Per motor vehicle its span; and the vehicles that qualify as targets, with t_A and arm direction phi."""
+    outer, margin = geometry.outer_radius, geometry.approach_margin
+    inside, near = pl.col("r") < outer, pl.col("r") < outer + margin
+    stats = motor.group_by("agent_id", maintain_order=True).agg(
+        first_frame=pl.col("frame").first(), last_frame=pl.col("frame").last(),
+        r_first=pl.col("r").first(), r_min=pl.col("r").min(),
+        frame_a=pl.col("frame").filter(inside).first(), theta_a=pl.col("theta").filter(inside).first(),
+        x0=pl.col("x").first(), y0=pl.col("y").first(),
+        xe=pl.col("x").filter(near).first(), ye=pl.col("y").filter(near).first())
+    arm = pl.arctan2(pl.col("y0") - pl.col("ye"), pl.col("x0") - pl.col("xe"))
+    radial = pl.arctan2(pl.col("ye") - geometry.centre_y, pl.col("xe") - geometry.centre_x)
+    long_approach = ((pl.col("x0") - pl.col("xe")) ** 2 + (pl.col("y0") - pl.col("ye")) ** 2).sqrt() >= 2.0
+    targets = (stats.filter(pl.col("frame_a").is_not_null() & (pl.col("r_min") >= geometry.inner_radius)
+                            & (pl.col("r_first") > outer + margin))
+               .with_columns(phi=pl.when(long_approach).then(arm).otherwise(radial)))
+    return stats, targets
+
+
+def extract_situations(tracks: pl.DataFrame, geometry: RoundaboutGeometry) -> pl.DataFrame:
+    """Gap-acceptance situations of one recording (module docstring): one row per (target, ego, conflict frame)
+    with gap, t_A, t_C, decision frame, t0, n_future_max and entry arm."""
+    motor = _polar(motor_tracks(tracks), geometry)
+    stats, targets = _targets(motor, geometry)
+    outer = geometry.outer_radius
+    target_rows = motor.join(targets.select("agent_id", "phi", "frame_a", "theta_a"), on="agent_id").select(
+        pl.col("agent_id").alias("target_id"), "frame", pl.col("r").alias("r_t"), "phi", "frame_a", "theta_a")
+    # an ego matters only inside the carriageway (its conflict-zone arrival and its open-gap frames lie there),
+    # which keeps the pair table to a fraction of all co-present vehicle pairs
+    ego_rows = motor.filter(pl.col("r") <= outer).select(pl.col("agent_id").alias("ego_id"), "frame",
+                                                         pl.col("r").alias("r_e"), pl.col("theta").alias("theta_e"))
+    pair = ["target_id", "ego_id"]
+    psi = _wrap((pl.col("theta_e") - pl.col("phi")) * geometry.direction)
+    contested = (pl.col("psi") > 0) & (pl.col("psi") < geometry.conflict_angle)
+    pairs = (target_rows.join(ego_rows, on="frame").filter(pl.col("ego_id") != pl.col("target_id"))
+             .with_columns(psi=psi).with_columns(contested=contested).sort(*pair, "frame"))
+    # entering the conflict zone from the previous frame inside the carriageway (rows are sorted by pair, frame)
+    follows = ((pl.col("target_id").shift(1) == pl.col("target_id")) & (pl.col("ego_id").shift(1) == pl.col("ego_id"))
+               & (pl.col("frame").shift(1) == pl.col("frame") - 1))
+    arrives = pl.col("contested") & follows & ~pl.col("contested").shift(1).fill_null(False)
+    spans = stats.select("agent_id", "first_frame", "last_frame")
+    events = (pairs.filter(arrives).select(*pair, pl.col("frame").alias("conflict_frame"), "frame_a", "theta_a")
+              .join(spans.rename({"agent_id": "ego_id", "first_frame": "ego_first", "last_frame": "ego_last"}),
+                    on="ego_id")
+              .filter(pl.col("ego_first") <= pl.col("frame_a")))
+    rejected = events.filter(pl.col("conflict_frame") <= pl.col("frame_a")).with_columns(gap=pl.lit("rejected"))
+    accepted = (events.filter(pl.col("conflict_frame") > pl.col("frame_a"))
+                .sort("target_id", "conflict_frame", "ego_id")
+                .group_by("target_id", maintain_order=True).first().with_columns(gap=pl.lit("accepted")))
+    situations = pl.concat([rejected, accepted.select(rejected.columns)]).with_columns(
+        decision_frame=pl.when(pl.col("gap") == "accepted").then(pl.col("frame_a")).otherwise(pl.col("conflict_frame")))
+    return _prediction_times(pairs, situations, spans, geometry)
+
+
+def _prediction_times(pairs: pl.DataFrame, situations: pl.DataFrame, spans: pl.DataFrame,
+                      geometry: RoundaboutGeometry) -> pl.DataFrame:
+    """t_S, t0 and the horizons of each situation; situations without an open gap or enough data are dropped."""
+    key = ["target_id", "ego_id", "conflict_frame"]
+    outer = geometry.outer_radius
+    undecided = ((pl.col("r_e") <= outer) & (pl.col("r_e") >= outer - geometry.ego_band) & (pl.col("psi") < 0)
+                 & (pl.col("r_t") > outer))
+    rows = (pairs.select("target_id", "ego_id", "frame", "r_t", "r_e", "psi")
+            .join(situations.select(*key, "decision_frame"), on=["target_id", "ego_id"])
+            .filter(pl.col("frame") < pl.col("decision_frame"))
+            .sort(*key, "frame")
+            .with_columns(open=undecided))
+    # a run of open frames starts where the previous frame of the situation is missing or not open; t_S is the
+    # start of the last run before the decision
+    follows = pl.all_horizontal([pl.col(name).shift(1) == pl.col(name) for name in key]) & (
+        pl.col("frame").shift(1) == pl.col("frame") - 1)
+    starts = (rows.filter(pl.col("open") & ~(follows & pl.col("open").shift(1)).fill_null(False))
+              .group_by(key).agg(pl.col("frame").max().alias("start_frame")))
+    target_span = spans.rename({"agent_id": "target_id", "first_frame": "target_first", "last_frame": "target_last"})
+    t0 = pl.max_horizontal("start_frame", pl.col("target_first") + N_PAST - 1, pl.col("ego_first") + N_PAST - 1)
+    common_last = pl.min_horizontal("target_last", "ego_last")
+    needed = pl.max_horizontal(pl.lit(N_FUTURE), pl.min_horizontal(pl.lit(DECISION_HORIZON_CAP),
+                                                                  pl.col("conflict_frame") - pl.col("t0_frame"))
+                               + HORIZON_MARGIN)
+    arms = np.asarray(geometry.entry_angles, dtype=np.float64)
+    timed = (situations.join(starts, on=key).join(target_span, on="target_id")
+             .with_columns(t0_frame=t0, common_last=common_last)
+             .filter((pl.col("t0_frame") < pl.col("decision_frame"))
+                     & (pl.col("t0_frame") + N_FUTURE <= pl.col("common_last")))
+             .with_columns(n_future_max=pl.min_horizontal(needed, pl.col("common_last") - pl.col("t0_frame"),
+                                                          pl.lit(N_FUTURE_MAX)).cast(pl.Int64)))
+    entry_arm = (_nearest_arm(timed.get_column("theta_a").to_numpy(), arms) if len(arms)
+                 else np.full(timed.height, -1, dtype=np.int64))
+    return (timed.with_columns(entry_arm=pl.Series(entry_arm, dtype=pl.Int64))
+            .select("target_id", "ego_id", "gap", "frame_a", "conflict_frame", "decision_frame", "start_frame",
+                    "t0_frame", "n_future_max", "entry_arm")
+            .sort("t0_frame", "target_id", "ego_id", "conflict_frame"))
+
+
+def _nearest_arm(angles: np.ndarray, arms: np.ndarray) -> np.ndarray:
+    """Index of the entry arm closest (circularly) to each angle."""
+    difference = np.abs((angles[:, None] - arms[None, :] + np.pi) % (2 * np.pi) - np.pi)
+    return difference.argmin(axis=1).astype(np.int64)
+
+
+def situation_samples(situations: pl.DataFrame, scene_id: str) -> pl.DataFrame:
+    """Two samples per situation (target first, then ego) with a recording-local `pair` index."""
+    base = situations.with_row_index("pair").with_columns(pl.col("pair").cast(pl.Int64), scene_id=pl.lit(scene_id))
+    common = ["scene_id", "pair", "t0_frame", "gap", "decision_frame", "conflict_frame", "entry_arm", "n_future_max"]
+    target = base.select(*common, pl.col("target_id").alias("agent_id"), pl.col("ego_id").alias("partner_id"),
+                         pl.lit("target").alias("role"))
+    ego = base.select(*common, pl.col("ego_id").alias("agent_id"), pl.col("target_id").alias("partner_id"),
+                      pl.lit("ego").alias("role"))
+    return (pl.concat([target, ego]).sort("pair", pl.col("role") != "target")
+            .with_columns(n_past=pl.lit(N_PAST, dtype=pl.Int64), n_future=pl.lit(N_FUTURE, dtype=pl.Int64)))
+
+
+def input_keys(samples: pl.DataFrame, tracks: pl.DataFrame) -> pl.Series:
+    """Per sample a hash of its inputs (target window and the windows of everyone present at t0), exactly as
+    :func:`windows.identical_input_groups` keys them, so group ids can be assigned across recordings later."""
+    windows = _window_hashes(tracks, N_PAST, GROUP_TOLERANCE_M)
+    context = (windows.group_by("scene_id", "frame").agg(pl.col("window_hash").sort().alias("context"))
+               .select("scene_id", "frame", pl.col("context").hash(seed=1).alias("context_hash")))
+    return (samples.select("scene_id", "agent_id", "t0_frame").with_row_index("__order")
+            .join(windows, left_on=["scene_id", "agent_id", "t0_frame"], right_on=["scene_id", "agent_id", "frame"],
+                  how="left")
+            .join(context, left_on=["scene_id", "t0_frame"], right_on=["scene_id", "frame"], how="left")
+            .sort("__order")
+            .select(pl.struct("window_hash", "context_hash").hash(seed=2).alias("input_key")).to_series())
+
+
+# ------------------------------------------------------------------------------------------------ folds, groups
+
+
+def assign_splits(samples: pl.DataFrame) -> pl.DataFrame:
+    """Global ids (sample, joint, group, situation) and the seeded fold / train-val assignment by situation.
+
+    `samples` are the per-recording samples of every recording, each with its `input_key`.
+    """
+    samples = (samples.sort("scene_id", "t0_frame", "pair", pl.col("role") != "target")
+               .with_columns(joint_id=pl.struct("scene_id", "pair").rank("dense").cast(pl.Int64) - 1)
+               .with_row_index("sample_id").with_columns(pl.col("sample_id").cast(pl.Int64)))
+    first_seen = pl.col("sample_id").min().over("input_key")
+    samples = samples.with_columns(group_id=first_seen.rank("dense").cast(pl.Int64) - 1)
+    # a situation is one target's entering manoeuvre: all its gaps (rejected ones and the accepted one) with
+    # their egos; the samples of a situation share the target's trajectory and stay in one fold
+    target = pl.when(pl.col("role") == "target").then(pl.col("agent_id")).otherwise(pl.col("partner_id"))
+    first = pl.col("sample_id").min().over("scene_id", target)
+    samples = samples.with_columns(situation_id=first.rank("dense").cast(pl.Int64) - 1)
+    count = int(samples.get_column("situation_id").max() or 0) + 1
+    rng = np.random.default_rng(SPLIT_SEED)
+    fold_of = np.empty(count, dtype=np.int64)
+    fold_of[rng.permutation(count)] = np.arange(count) % FOLDS
+    is_val = np.zeros(count, dtype=bool)
+    is_val[rng.permutation(count)[:math.ceil(VAL_FRACTION * count)]] = True
+    situation = samples.get_column("situation_id").to_numpy()
+    return samples.with_columns(
+        fold=pl.Series(fold_of[situation].astype(str), dtype=pl.String),
+        split=pl.Series(np.where(is_val[situation], "val", "train"), dtype=pl.String),
+    ).select(*SAMPLE_SCHEMA)
+
+
+# ----------------------------------------------------------------------------------------------------- pipeline
+
+
+def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.DataFrame, recording: Recording,
+              warnings: list[str]) -> RoundaboutGeometry | None:
+    """The configured geometry of the recording's location, else one inferred from its traffic (None + warning
+    when there is too little circulating traffic to infer it)."""
+    given = geometry_for(config, meta.location_id)
+    if given is not None:
+        return given
+    try:
+        return infer_geometry(motor_tracks(tracks), DT, where=str(recording.path("tracks.csv")))
+    except GeometryError as error:
+        _warn(f"{error}; recording {recording.number:02d} contributes no samples", warnings)
+        return None
+
+
+def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig | None, warnings: list[str],
+                     step: Callable[[str], None] = lambda _: None) -> RecordingResult:
+    """Read, check, resample and search one recording; store its map under `root`.
+
+    `step` is called after each of the four stages (reading, map, scenarios, groups) with the name of the next.
+    """
+    meta = read_recording_meta(recording)
+    tracks_meta = read_tracks_meta(recording)
+    raw = read_raw_tracks(recording, tracks_meta)
+    raw_rows = raw.height
+    tracks = resample(raw, tracks_meta, meta, recording)
+    del raw
+    step("map")
+    map_columns = background_map(recording, meta, root, tracks, warnings)
+    step("scenarios")
+    used = _geometry(geometry, meta, tracks, recording, warnings)
+    situations = extract_situations(tracks, used) if used is not None else None
+    if situations is not None and situations.height == 0:
+        _warn(f"{recording.path('tracks.csv')}: no gap-acceptance situation (a vehicle entering while another "
+              "circulates towards its arm); the recording contributes no samples", warnings)
+    step("groups")
+    if situations is not None and situations.height:
+        samples = situation_samples(situations, recording.scene_id)
+        samples = samples.with_columns(input_key=input_keys(samples, tracks))
+    else:
+        samples = pl.DataFrame()
+    step("done")
+    geometry_values = used.to_dict() if used is not None else {}
+    scene = {"dataset": DATASET, "scene_id": recording.scene_id, "location": f"location{meta.location_id}",
+             "dt": DT, "source": ";".join(recording.path(kind).name for kind in FILE_KINDS), "fold": None,
+             **map_columns, "recording_id": meta.recording_id, "location_id": meta.location_id,
+             "frame_rate": meta.frame_rate,
+             **{column: geometry_values.get(name) for column, name in GEOMETRY_COLUMNS.items()}}
+    gaps = (situations.get_column("gap").value_counts().rows() if situations is not None and situations.height
+            else [])
+    summary = {"recording": f"{recording.number:02d}", "location_id": meta.location_id, "raw_rows": raw_rows,
+               "track_rows": tracks.height, "map": map_columns["map_path"], "geometry": geometry_values or None,
+               "situations": dict(gaps),
+               "needing_more_than_n_future": (int((situations.get_column("n_future_max") > N_FUTURE).sum())
+                                              if situations is not None else 0)}
+    return RecordingResult(tracks=tracks, scene=scene, samples=samples, summary=summary)
+
+
+def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int | str] | None = None,
+                 geometry: GeometryConfig | None = None, overwrite: bool = False, quiet: bool = False) -> Path:
+    """Ingest rounD recordings from `raw` (a folder, its data/ sub-folder or one recording's file) into `out`.
+
+    `recordings` selects recording numbers; `geometry` is one RoundaboutGeometry for all recordings or a mapping
+    locationId -> geometry (locations not in it are inferred from their own traffic). Recordings are processed one
+    at a time; the dataset appears at `out` only when complete. Returns `out`.
+    """
+    raw, out = Path(raw), Path(out)
+    selected = discover_recordings(raw, recordings)
+    meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
+    warnings: list[str] = []
+    scenes, sample_parts, summaries = [], [], []
+    with DatasetWriter(out, meta, overwrite=overwrite, shard_rows=SHARD_ROWS) as writer:
+        with make_progress(quiet) as progress:
+            for recording in selected:
+                name = f"recording {recording.number:02d}"
+                task = progress.add_task(f"{name}: reading", total=4)
+
+                def step(stage: str, task: Any = task, name: str = name) -> None:
+                    progress.update(task, advance=1, description=f"{name}: {stage}")
+
+                result = ingest_recording(recording, writer.root, geometry, warnings, step)
+                writer.add_tracks(result.tracks)
+                scenes.append(result.scene)
+                summaries.append(result.summary)
+                if result.samples.height:
+                    sample_parts.append(result.samples)
+        if sample_parts:
+            samples = assign_splits(pl.concat(sample_parts))
+        else:
+            samples = pl.DataFrame(schema=SAMPLE_SCHEMA)
+            _warn(f"{raw}: no gap-acceptance situation in any recording; the dataset has no samples", warnings)
+        scene_table = pl.DataFrame(scenes, schema_overrides=SCENE_SCHEMA)
+        writer.finish(scene_table, samples, lineage={
+            "raw": str(raw.resolve()), "n_past": N_PAST, "n_future": N_FUTURE, "n_future_max": N_FUTURE_MAX,
+            "raw_frame_rates": sorted({scene["frame_rate"] for scene in scenes}),
+            "background_scale_down": BACKGROUND_SCALE_DOWN, "folds": FOLDS, "val_fraction": VAL_FRACTION,
+            "split_seed": SPLIT_SEED, "recordings": summaries, "warnings": warnings})
+    return out
