@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from ..errors import TrajflowError
 from ..util.progress import console
@@ -32,7 +33,7 @@ def user_errors() -> Iterator[None]:
     except TrajflowError as error:
         if DEBUG["enabled"]:
             raise
-        console.print(f"[bold red]error:[/] {error}", highlight=False, soft_wrap=True)
+        console.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
         raise typer.Exit(error.exit_code) from None
     except KeyboardInterrupt:
         console.print("[bold red]interrupted[/]: nothing was moved into place")

@@ -19,7 +19,7 @@ from pathlib import Path
 import polars as pl
 
 from ..errors import DataError, UsageError
-from ..schemas import AGENT_TYPES, PROTOCOL_FIXED, PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
 from .windows import complete_windows, identical_input_groups
 
