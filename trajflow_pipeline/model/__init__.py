@@ -1,1 +1,26 @@
+"""TrajFlow and its baselines in pure torch: normalisation, autoencoder, conditional flow, context encoders.
 
+Nothing here knows about files other than :mod:`.checkpoint`; the data side hands over a :class:`SceneBatch`.
+
+    >>> model = build_model(ModelConfig(name="trajflow"), DataSpec(n_past=8, n_future=12))
+    >>> loss = model.stage_loss("autoencoder", batch)           # stage 1, then "flow"
+    >>> trajectories, log_lik = model.sample(batch, n=20)       # (B, 20, 12, 2) world coords, (B, 20)
+"""
+
+from .batch import AGENT_TYPES, NUM_AGENT_TYPES, SceneBatch
+from .checkpoint import (FORMAT_VERSION, MODEL_FILE, load_model, load_training_state, read_model_metadata,
+                         save_model, save_training_state)
+from .config import MODEL_NAMES, DataSpec, ModelConfig, RunConfig, TrainConfig, apply_overrides, load_config
+from .models import (MODEL_CLASSES, ConstantVelocity, FloMo, Samples, TrajectoryModel, TrajFlow, TrajFlowNoAE,
+                     build_model)
+from .runtime import resolve_device, tune_cpu_allocator
+
+__all__ = [
+    "AGENT_TYPES", "NUM_AGENT_TYPES", "SceneBatch",
+    "FORMAT_VERSION", "MODEL_FILE", "load_model", "load_training_state", "read_model_metadata", "save_model",
+    "save_training_state",
+    "MODEL_NAMES", "DataSpec", "ModelConfig", "RunConfig", "TrainConfig", "apply_overrides", "load_config",
+    "MODEL_CLASSES", "ConstantVelocity", "FloMo", "Samples", "TrajectoryModel", "TrajFlow", "TrajFlowNoAE",
+    "build_model",
+    "resolve_device", "tune_cpu_allocator",
+]

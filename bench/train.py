@@ -1,0 +1,122 @@
+"""Training throughput and sampling latency of the models (figures printed; not a timed test).
+
+    python bench/train.py                      # CPU with 2 threads, and CUDA when available
+    python bench/train.py --threads 1 --repeats 5 --models trajflow
+
+Training: samples/s of one optimisation step per stage (loss, backward, finiteness check, fused AdamW) at batch
+128 on ETH/UCY-shaped problems (8 past, 12 future steps) with up to 0, 8 and 24 neighbours (80% of them present).
+Sampling: wall time of ``model.sample(batch, 100)`` for 1000 agents (up to 8 neighbours each), which returns the
+log-likelihood of every sample.
+Each figure is the best of ``--repeats`` timed rounds, so that noise from other processes inflates it least; the
+load average printed with the figures says how busy the machine was. Beside wall-clock rates the bench prints
+rates per CPU-second of this process: with one thread that approximates an idle machine's wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections.abc import Callable
+
+import torch
+
+from trajflow_pipeline.model import DataSpec, ModelConfig, build_model, tune_cpu_allocator
+from trajflow_pipeline.model.toy import crowd_batch
+from trajflow_pipeline.stages.train import _adamw, _finite_gradients
+
+SPEC = DataSpec(n_past=8, n_future=12, dataset="bench", dt=0.4)
+
+
+def best_time(fn: Callable[[], object], repeats: int, inner: int, sync: Callable[[], None]) -> tuple[float, float]:
+    """Best mean wall seconds and best mean process CPU seconds per call of `fn` over `repeats` rounds.
+
+    With one thread, CPU seconds approximate the wall time on an idle machine even when other processes compete.
+    """
+    fn()
+    sync()
+    wall = cpu = float("inf")
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        for _ in range(inner):
+            fn()
+        sync()
+        wall = min(wall, (time.perf_counter() - start) / inner)
+        cpu = min(cpu, (time.process_time() - start_cpu) / inner)
+    return wall, cpu
+
+
+def training_rate(name: str, stage: str, neighbours: int, device: torch.device, repeats: int,
+                  sync: Callable[[], None]) -> tuple[float, float]:
+    """Samples per second of the training step of `stage` at batch 128 (by wall time, by CPU time)."""
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name=name), SPEC).to(device).train()
+    params = model.stage_parameters(stage)
+    keep = {id(p) for p in params}
+    for p in model.parameters():
+        p.requires_grad_(id(p) in keep)
+    optimizer = _adamw(params, 1e-4, 1e-5)
+    batch = crowd_batch(128, neighbours=neighbours, seed=1).to(device)
+
+    def step() -> None:
+        loss = model.stage_loss(stage, batch)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if _finite_gradients(params, 0.0):
+            optimizer.step()
+
+    wall, cpu = best_time(step, repeats, 10, sync)
+    return 128 / wall, 128 / cpu
+
+
+def sampling_latency(name: str, device: torch.device, repeats: int,
+                     sync: Callable[[], None]) -> tuple[float, float]:
+    """Seconds (wall, CPU) to draw 100 futures with log-likelihoods for each of 1000 agents."""
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name=name), SPEC).to(device).eval()
+    batch = crowd_batch(1000, neighbours=8, seed=2).without_future().to(device)
+    if name == "cv":
+        model.fit_stage("fit", crowd_batch(1000, neighbours=0, seed=3).to(device))
+    generator = torch.Generator(device=device).manual_seed(0)
+
+    def draw() -> None:
+        trajectories, log_lik = model.sample(batch, 100, generator=generator)
+        assert trajectories.shape == (1000, 100, 12, 2) and log_lik.shape == (1000, 100)
+
+    return best_time(draw, repeats, 1, sync)
+
+
+def run(device: torch.device, models: list[str], repeats: int) -> None:
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    label = f"{device}" + (f", {torch.get_num_threads()} threads" if device.type == "cpu" else "")
+    print(f"\n== {label}; load average {os.getloadavg()[0]:.2f} ==")
+    print(f"{'model':16s} {'stage':12s} {'neighbours':>10s} {'samples/s':>12s} {'per CPU-s':>12s}")
+    for name in models:
+        stages = [s for s in build_model(ModelConfig(name=name), SPEC).stages if s != "fit"]
+        for stage in stages:
+            for neighbours in (0, 8, 24):
+                wall, cpu = training_rate(name, stage, neighbours, device, repeats, sync)
+                print(f"{name:16s} {stage:12s} {neighbours:>10d} {wall:>12,.0f} {cpu:>12,.0f}")
+    print(f"{'model':16s} {'sampling 100 x 1000 agents, with log-likelihoods: wall s':>58s} {'CPU s':>8s}")
+    for name in models:
+        wall, cpu = sampling_latency(name, device, repeats, sync)
+        print(f"{name:16s} {wall:>58.3f} {cpu:>8.3f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--threads", type=int, nargs="+", default=[2], help="torch CPU thread counts (default 2)")
+    parser.add_argument("--repeats", type=int, default=3, help="timed rounds per figure; the best is printed")
+    parser.add_argument("--models", nargs="+", default=["trajflow", "trajflow-no-ae", "flomo", "cv"])
+    parser.add_argument("--no-cuda", action="store_true", help="skip the CUDA figures")
+    args = parser.parse_args()
+    tune_cpu_allocator()
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        run(torch.device("cpu"), args.models, args.repeats)
+    if torch.cuda.is_available() and not args.no_cuda:
+        run(torch.device("cuda"), args.models, args.repeats)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,189 @@
+"""The four model families: shapes, world-frame outputs, horizons past n_future, masks, baselines' specifics."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from trajflow_pipeline.model.autoencoder import TrajectoryAutoencoder
+from trajflow_pipeline.model.batch import SceneBatch
+from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
+from trajflow_pipeline.model.encoders import SocialGNN, compact_neighbours, social_nodes
+from trajflow_pipeline.model.models import FloMo, build_model, extend_constant_velocity
+from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
+from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
+
+SPEC = DataSpec(n_past=8, n_future=12)
+
+
+def _model(name: str, spec: DataSpec = SPEC, **kwargs: object) -> torch.nn.Module:
+    torch.manual_seed(0)
+    return build_model(ModelConfig(name=name, **kwargs), spec).eval()
+
+
+def _rotate(batch: SceneBatch, angle: float, shift: tuple[float, float]) -> SceneBatch:
+    c, s = math.cos(angle), math.sin(angle)
+    matrix = torch.tensor([[c, s], [-s, c]])
+    offset = torch.tensor(shift)
+
+    def move(points: torch.Tensor) -> torch.Tensor:
+        return points @ matrix + offset
+
+    neighbours = move(batch.neighbours) * batch.neighbours_valid[..., None]
+    return replace(batch, past=move(batch.past), future=move(batch.future), neighbours=neighbours)
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_shapes_losses_and_long_horizons(name: str) -> None:
+    batch = crowd_batch(6, neighbours=5)
+    model = _model(name)
+    for stage in model.stages:
+        if stage in model.closed_form_stages:
+            model.fit_stage(stage, batch)
+        loss = model.stage_loss(stage, batch)
+        assert loss.shape == () and torch.isfinite(loss)
+    assert model.log_likelihood(batch).shape == (6,)
+    for steps in (None, 5, 30):
+        trajectories, log_lik = model.sample(batch.without_future(), 4, steps=steps)
+        assert trajectories.shape == (6, 4, steps or 12, 2) and log_lik.shape == (6, 4)
+        assert torch.isfinite(trajectories).all() and torch.isfinite(log_lik).all()
+    assert isinstance(model.log_lik_space, str) and model.log_lik_space
+
+
+@pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae"])
+def test_no_neighbours_and_maps(name: str) -> None:
+    spec = DataSpec(n_past=8, n_future=12, has_map=True)
+    model = _model(name, spec)
+    assert model.context.map is not None
+    batch = crowd_batch(3, neighbours=0, map_size=(156, 257))
+    assert batch.neighbours.shape[1] == 0
+    trajectories, _ = model.sample(batch, 2)
+    assert trajectories.shape == (3, 2, 12, 2)
+    assert torch.isfinite(model.loss(batch))
+    with pytest.raises(ValueError, match="map_crop"):
+        model.loss(replace(batch, map_crop=None))
+    assert _model(name).context.map is None
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_samples_follow_the_scene_pose(name: str) -> None:
+    """Rotating and moving the whole scene moves the samples the same way (normalisation + exact inverse)."""
+    batch = crowd_batch(5, neighbours=4)
+    model = _model(name)
+    if name == "cv":
+        model.fit_stage("fit", batch)
+    angle, shift = 0.7, (40.0, -25.0)
+    a, la = model.sample(batch, 3, generator=torch.Generator().manual_seed(5))
+    b, lb = model.sample(_rotate(batch, angle, shift), 3, generator=torch.Generator().manual_seed(5))
+    expected = _rotate(replace(batch, future=a.reshape(5, -1, 2)), angle, shift).future.reshape(a.shape)
+    assert torch.allclose(b, expected, atol=2e-3)
+    assert torch.allclose(la, lb, atol=2e-3)
+
+
+def test_direct_models_extend_at_constant_velocity() -> None:
+    model = _model("trajflow-no-ae")
+    batch = crowd_batch(4, neighbours=2)
+    long, _ = model.sample(batch, 3, steps=16, generator=torch.Generator().manual_seed(1))
+    short, _ = model.sample(batch, 3, generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(long[:, :, :12], short, atol=1e-5)
+    steps = long[:, :, 11:] - long[:, :, 10:-1]
+    assert torch.allclose(steps, steps[:, :, :1].expand_as(steps), atol=1e-4)
+    disp = torch.arange(6.0).reshape(1, 3, 2)
+    assert extend_constant_velocity(disp, 5)[0, 3:].tolist() == [[4.0, 5.0], [4.0, 5.0]]
+    assert extend_constant_velocity(disp, 2).shape == (1, 2, 2)
+
+
+def test_sample_log_lik_is_the_flow_density_of_the_sample() -> None:
+    model = _model("trajflow-no-ae")
+    batch = crowd_batch(4, neighbours=3)
+    trajectories, log_lik = model.sample(batch, 1, generator=torch.Generator().manual_seed(2))
+    replay = model.log_likelihood(replace(batch, future=trajectories[:, 0]))
+    assert torch.allclose(replay, log_lik[:, 0], atol=5e-2)
+
+
+def test_decoder_rolls_out_past_the_trained_horizon() -> None:
+    torch.manual_seed(0)
+    ae = TrajectoryAutoencoder()
+    latent = torch.randn(5, 20)
+    long, short = ae.decode(latent, 35), ae.decode(latent, 12)
+    assert long.shape == (5, 35, 2) and torch.allclose(long[:, :12], short, atol=1e-6)
+    assert ae.decode(torch.randn(3, 4, 20), 7).shape == (3, 4, 7, 2)
+
+
+def test_autoencoder_loss_is_rmse_on_positions() -> None:
+    torch.manual_seed(0)
+    ae = TrajectoryAutoencoder()
+    disp = torch.randn(8, 12, 2)
+    recon = ae(disp)
+    expected = ((displacements_to_positions(recon, 10.0) - displacements_to_positions(disp, 10.0)) ** 2)
+    expected = expected.sum(-1).mean().sqrt()
+    assert torch.allclose(ae.reconstruction_loss(disp, 10.0), expected, atol=1e-5)
+
+
+def test_gnn_ignores_padding_and_neighbour_order() -> None:
+    batch = crowd_batch(4, neighbours=6)
+    frame = target_frame(batch.past)
+    local = to_local(batch.past, frame)
+    torch.manual_seed(0)
+    gnn = SocialGNN().eval()
+    base = gnn(*social_nodes(batch, frame, local))
+    garbage = torch.where(batch.neighbours_mask[..., None, None], batch.neighbours,
+                          torch.full_like(batch.neighbours, 1e3))
+    assert torch.allclose(gnn(*social_nodes(replace(batch, neighbours=garbage), frame, local)), base, atol=1e-5)
+    order = torch.randperm(6)
+    shuffled = replace(batch, neighbours=batch.neighbours[:, order], neighbours_valid=batch.neighbours_valid[:, order],
+                       neighbours_mask=batch.neighbours_mask[:, order], neighbours_type=batch.neighbours_type[:, order])
+    assert torch.allclose(gnn(*social_nodes(shuffled, frame, local)), base, atol=1e-5)
+    padded = compact_neighbours(batch)
+    assert padded.neighbours.shape[1] == int(batch.neighbours_mask.sum(1).max())
+
+
+def test_constant_velocity_fits_its_noise_scale() -> None:
+    g = torch.Generator().manual_seed(0)
+    n, sigma = 4000, 0.05
+    velocity = torch.randn(n, 1, 2, generator=g)
+    steps = torch.arange(-7, 13, dtype=torch.float32)[None, :, None]
+    track = steps * velocity
+    k = torch.arange(1, 13, dtype=torch.float32)[None, :, None]
+    track[:, 8:] += sigma * k * torch.randn(n, 12, 2, generator=g)
+    batch = crowd_batch(n, neighbours=0)
+    batch = replace(batch, past=track[:, :8], future=track[:, 8:])
+    model = _model("cv")
+    model.fit_stage("fit", batch)
+    assert float(model.sigma) == pytest.approx(sigma, rel=0.05)
+    trajectories, _ = model.sample(batch.index(slice(0, 50)), 400)
+    mean = trajectories.mean(1)
+    assert torch.allclose(mean, (steps[:, 8:] * velocity)[:50], atol=4 * sigma * 12 / 20)
+    spread = (trajectories[:, :, -1] - mean[:, None, -1]).std()
+    assert float(spread) == pytest.approx(sigma * 12, rel=0.15)
+
+
+def test_flomo_noise_and_scaling_only_while_training() -> None:
+    batch, _ = bimodal_batch(32, n_past=8, n_future=12, neighbours=2)
+    model = _model("flomo")
+    assert isinstance(model, FloMo)
+    model.eval()
+    assert torch.equal(model.loss(batch), model.loss(batch))
+    model.train()
+    assert not torch.equal(model.loss(batch), model.loss(batch))
+    factors = model._scale_factors(10000, batch.past)
+    assert float(factors.min()) >= 0.3 and float(factors.max()) <= 1.7
+    assert float(factors.mean()) == pytest.approx(1.0, abs=0.02)
+
+
+def test_gnn_dense_and_sparse_message_passing_agree() -> None:
+    batch = crowd_batch(6, neighbours=7)
+    frame = target_frame(batch.past)
+    nodes = social_nodes(batch, frame, to_local(batch.past, frame))
+    torch.manual_seed(0)
+    gnn = SocialGNN()
+    past, valid, mask, types = nodes
+    onehot = torch.nn.functional.one_hot(types, 5).float()
+    x = torch.randn(*mask.shape, 32)
+    pos = torch.randn(*mask.shape, 2)
+    dense = gnn._dense_rounds(x, pos, onehot, mask)
+    sparse = gnn._sparse_rounds(x, pos, onehot, mask)
+    assert torch.allclose(dense[mask], sparse[mask], atol=1e-4)

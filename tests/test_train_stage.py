@@ -1,0 +1,261 @@
+"""`stages.train.train`: learning on a bimodal toy, run directory contents, resume == uninterrupted, bad input.
+
+Most tests feed generated SceneBatches through a stand-in for `trajflow_pipeline.data.load_problems` (fast and
+independent of the dataset readers); the last ones train on a real synthetic-bimodal dataset directory.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+import torch
+
+import trajflow_pipeline
+from trajflow_pipeline import data as data_module
+from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
+from trajflow_pipeline.model import load_model, load_training_state
+from trajflow_pipeline.model.batch import SceneBatch
+from trajflow_pipeline.model.config import load_config
+from trajflow_pipeline.model.normalize import target_frame, to_local
+from trajflow_pipeline.model.toy import bimodal_batch
+from trajflow_pipeline.stages import train as train_stage
+from trajflow_pipeline.stages.train import train
+
+FAST = ["train.ae_min_epochs=0", "train.flow_min_epochs=0"]
+TINY_MODEL = ["model.flow_layers=4", "model.flow_hidden=[16, 16]", "model.gnn_layers=2"]
+
+
+@dataclass
+class FakeProblems:
+    """The attributes of `trajflow_pipeline.data.Problems` that training reads."""
+
+    batch: SceneBatch
+    n_past: int
+    n_future: int
+    has_map: bool = False
+    dataset: str = "toy"
+    dt: float = 0.25
+    fingerprint: dict[str, str] = field(default_factory=lambda: {"dataset": "toy", "manifest_sha256": "0" * 64})
+
+    def __len__(self) -> int:
+        return len(self.batch)
+
+
+def install_fake_data(monkeypatch: pytest.MonkeyPatch, n_train: int, n_val: int, *, neighbours: int = 2,
+                      folds: tuple[str, ...] = (), nan_train: bool = False) -> None:
+    """Serve bimodal toy problems for every dataset path; folds other than `folds` are a UsageError."""
+
+    def load_problems(dataset_dir: object, fold: str | None = None, split: str = "train") -> FakeProblems:
+        if fold is not None and fold not in folds:
+            raise UsageError(f"fold '{fold}' does not exist in dataset 'toy'")
+        n = {"train": n_train, "val": n_val, "test": n_val}[split]
+        if n == 0:
+            raise DataError("the selected split has no samples", path=Path(str(dataset_dir)) / "samples.parquet")
+        batch, _ = bimodal_batch(n, seed={"train": 0, "val": 1, "test": 2}[split], neighbours=neighbours)
+        if nan_train and split == "train":
+            future = batch.future.clone()
+            future[3, 5] = float("nan")
+            batch = replace(batch, future=future)
+        return FakeProblems(batch=batch, n_past=batch.n_past, n_future=batch.n_future)
+
+    monkeypatch.setattr(data_module, "load_problems", load_problems)
+
+
+def log_of(run: Path) -> pl.DataFrame:
+    return pl.read_parquet(run / "train_log.parquet")
+
+
+def final_weights(run: Path) -> dict[str, torch.Tensor]:
+    return load_model(run).state_dict()
+
+
+def test_training_lowers_validation_nll_and_samples_both_modes(monkeypatch: pytest.MonkeyPatch,
+                                                               tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 512, 128)
+    run = train(tmp_path / "data", tmp_path / "run", model="trajflow", quiet=True,
+                overrides=[*FAST, "train.ae_max_epochs=15", "train.flow_max_epochs=15", "train.ae_lr=5e-3",
+                           "train.ae_batch_size=64"])
+    log = log_of(run)
+    for stage in ("autoencoder", "flow"):
+        val = log.filter(pl.col("stage") == stage).get_column("val_loss")
+        assert val.min() < val[0] - 0.1, f"{stage} validation loss did not improve: {val.to_list()}"
+    flow_val = log.filter(pl.col("stage") == "flow").get_column("val_loss")
+    assert flow_val.min() < 0
+    model = load_model(run, expected_model="trajflow")
+    batch, _ = bimodal_batch(20, seed=7)
+    trajectories, log_lik = model.sample(batch, 50, generator=torch.Generator().manual_seed(0))
+    local = to_local(trajectories.reshape(20, -1, 2), target_frame(batch.past)).reshape(20, 50, 14, 2)
+    final_y = local[:, :, -1, 1]
+    left = float((final_y > 0).float().mean())
+    assert 0.2 < left < 0.8, f"samples collapsed onto one mode (left fraction {left:.2f})"
+    assert float(final_y.abs().median()) > 0.4, "samples do not reach the modes"
+    assert torch.isfinite(log_lik).all()
+
+
+def test_run_directory_contents(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 96, 32)
+    run = train(tmp_path / "data", tmp_path / "run", model="flomo", seed=4, quiet=True,
+                overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=2"])
+    config = load_config(run / "config.toml")
+    assert config.model.name == "flomo" and config.train.seed == 4 and config.train.flow_max_epochs == 2
+    info = json.loads((run / "run.json").read_text())
+    assert info["status"] == "finished" and info["trajflow_version"] == trajflow_pipeline.__version__
+    assert info["fingerprint"]["dataset"] == "toy" and info["n_train"] == 96 and info["n_val"] == 32
+    assert info["log_lik_space"] == "scaled_displacements" and info["best"]["flow"]["epoch"] >= 1
+    log = log_of(run)
+    assert log.columns[:7] == ["epoch", "stage", "train_loss", "val_loss", "lr", "seconds", "skipped_steps"]
+    assert log.get_column("stage").to_list() == ["flow", "flow"]
+    lr = log.get_column("lr").to_list()
+    assert lr[1] == pytest.approx(lr[0] * 0.98)
+    assert (run / "checkpoints" / "state.pt").is_file() and (run / "checkpoints" / "best-flow.safetensors").is_file()
+    assert load_model(run).name == "flomo"
+    leftovers = [p.name for p in run.rglob("*") if ".tmp" in p.name]
+    assert not leftovers
+
+
+def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 80, 24)
+    options = dict(model="trajflow", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.ae_max_epochs=3",
+                                                             "train.flow_max_epochs=3", "train.ae_batch_size=32",
+                                                             "train.flow_batch_size=32"])
+    whole = train(tmp_path / "data", tmp_path / "whole", **options)
+
+    class Killed(Exception):
+        pass
+
+    for stop_at in [("autoencoder", 2), ("flow", 1), ("flow", 3)]:
+        def hook(stage: str, epoch: int, stop_at: tuple[str, int] = stop_at) -> None:
+            if (stage, epoch) == stop_at:
+                raise Killed(stop_at)
+
+        monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+        with pytest.raises(Killed):
+            train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+        assert not (tmp_path / "parts" / "final").exists()
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    a, b = final_weights(whole), final_weights(tmp_path / "parts")
+    assert a.keys() == b.keys()
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+    curve = ["stage", "epoch", "train_loss", "val_loss", "lr", "skipped_steps"]
+    assert log_of(whole).select(curve).equals(log_of(tmp_path / "parts").select(curve))
+    # A finished run resumes to itself.
+    assert train(tmp_path / "data", tmp_path / "parts", resume=True, **options) == tmp_path / "parts"
+
+
+def test_resume_restores_flomo_randomness(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 64, 16)
+    options = dict(model="flomo", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=3",
+                                                          "train.flow_batch_size=32"])
+    whole = train(tmp_path / "data", tmp_path / "whole", **options)
+
+    def hook(stage: str, epoch: int) -> None:
+        if epoch == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(KeyboardInterrupt):
+        train(tmp_path / "data", tmp_path / "parts", **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    a, b = final_weights(whole), final_weights(tmp_path / "parts")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_same_seed_same_curve_other_seed_other_curve(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 64, 16)
+    overrides = [*FAST, *TINY_MODEL, "train.flow_max_epochs=2"]
+    runs = [train(tmp_path / "d", tmp_path / f"r{i}", model="trajflow-no-ae", seed=seed, quiet=True,
+                  overrides=overrides) for i, seed in enumerate((1, 1, 2))]
+    losses = [log_of(run).get_column("train_loss").to_list() for run in runs]
+    assert losses[0] == losses[1] and losses[0] != losses[2]
+
+
+def test_constant_velocity_run(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 64, 16)
+    run = train(tmp_path / "d", tmp_path / "run", model="cv", quiet=True)
+    log = log_of(run)
+    assert log.get_column("stage").to_list() == ["fit"]
+    model = load_model(run, expected_model="cv")
+    assert 0 < float(model.sigma) < 1
+    trajectories, _ = model.sample(bimodal_batch(3)[0], 5, steps=20)
+    assert trajectories.shape == (3, 5, 20, 2)
+
+
+def test_non_finite_steps_are_skipped_and_counted(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 64, 16, nan_train=True)
+    run = train(tmp_path / "d", tmp_path / "run", model="trajflow-no-ae", quiet=True,
+                overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=2", "train.flow_batch_size=16"])
+    log = log_of(run)
+    assert log.get_column("skipped_steps").to_list() == [1, 1]
+    assert log.get_column("train_loss").is_finite().all()
+    assert json.loads((run / "run.json").read_text())["skipped_steps"] == 2
+    assert all(torch.isfinite(v).all() for v in final_weights(run).values())
+
+
+def test_without_val_split_part_of_train_is_held_out(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 50, 0)
+    run = train(tmp_path / "d", tmp_path / "run", model="cv", quiet=True)
+    info = json.loads((run / "run.json").read_text())
+    assert (info["n_train"], info["n_val"]) == (45, 5) and "held out" in info["validation"]
+
+
+def test_bad_input_is_one_clear_error(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 32, 8, folds=("a",))
+    data = tmp_path / "d"
+    with pytest.raises(UsageError, match="unknown config key 'train.nope'"):
+        train(data, tmp_path / "r1", overrides=["train.nope=1"], quiet=True)
+    with pytest.raises(UsageError, match="unknown model 'flowmo'"):
+        train(data, tmp_path / "r2", model="flowmo", quiet=True)
+    with pytest.raises(UsageError, match="fold 'b' does not exist"):
+        train(data, tmp_path / "r3", fold="b", model="cv", quiet=True)
+    config = tmp_path / "cfg.toml"
+    config.write_text("[train]\nflow_lr = 'fast'\n")
+    with pytest.raises(UsageError, match="train.flow_lr"):
+        train(data, tmp_path / "r4", config_path=config, quiet=True)
+    run = train(data, tmp_path / "r5", fold="a", model="cv", quiet=True)
+    with pytest.raises(UsageError, match="already holds a run"):
+        train(data, run, model="cv", quiet=True)
+    with pytest.raises(UsageError, match="different configuration"):
+        train(data, run, model="flomo", resume=True, quiet=True)
+    install_fake_data(monkeypatch, 0, 8)
+    with pytest.raises(DataError, match="no samples"):
+        train(data, tmp_path / "r6", model="cv", quiet=True)
+
+
+def test_corrupt_checkpoint_on_resume_names_the_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 32, 8)
+    options = dict(model="trajflow-no-ae", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=2"])
+
+    def hook(stage: str, epoch: int) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(KeyboardInterrupt):
+        train(tmp_path / "d", tmp_path / "run", **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    state = tmp_path / "run" / "checkpoints" / "state.pt"
+    assert load_training_state(state)["epoch"] == 1
+    state.write_bytes(b"not a checkpoint")
+    with pytest.raises(TrajflowError, match="state.pt"):
+        train(tmp_path / "d", tmp_path / "run", resume=True, **options)
+
+
+def test_trains_on_a_real_dataset_directory(synthetic_dataset: Path, tmp_path: Path) -> None:
+    run = train(synthetic_dataset, tmp_path / "run", model="trajflow", quiet=True,
+                overrides=[*FAST, *TINY_MODEL, "train.ae_max_epochs=2", "train.flow_max_epochs=2"])
+    info = json.loads((run / "run.json").read_text())
+    assert info["dataset"] == "synthetic_bimodal" and info["n_past"] == 10 and info["n_future"] == 14
+    assert info["fingerprint"]["manifest_sha256"]
+    model = load_model(run)
+    problems = data_module.load_problems(synthetic_dataset, split="test")
+    trajectories, log_lik = model.sample(problems.batch.index(slice(0, 4)).without_future(), 3, steps=20)
+    assert trajectories.shape == (4, 3, 20, 2) and np.isfinite(log_lik.numpy()).all()
+    with pytest.raises(UsageError, match="no folds"):
+        train(synthetic_dataset, tmp_path / "run2", fold="0", model="cv", quiet=True)

@@ -1,0 +1,41 @@
+"""`trajflow train DATA -o RUN`: parse the options and call :func:`trajflow_pipeline.stages.train.train`.
+
+Registered by the application as ``app.command("train")(train_command)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..model.config import MODEL_NAMES
+from .common import Quiet, user_errors
+
+
+def train_command(
+    data: Annotated[Path, typer.Argument(metavar="DATA", help="Dataset directory written by `trajflow ingest`.")],
+    out: Annotated[Path, typer.Option("--out", "-o", metavar="RUN",
+                                      help="Run directory: config, checkpoints, training log, final model.")],
+    fold: Annotated[Optional[str], typer.Option(help="Test fold of a cross-validation protocol (e.g. hotel, 0); "
+                                                     "its training folds are used.")] = None,
+    model: Annotated[Optional[str], typer.Option(help=f"Model family: {', '.join(MODEL_NAMES)} "
+                                                      "(default: the config's, else trajflow).")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", metavar="CFG.toml",
+                                                   help="TOML file with [model] and [train] tables.")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE",
+                                                      help="Override one config value, e.g. "
+                                                           "train.flow_lr=3e-4 (repeatable).")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Random seed (train.seed).")] = None,
+    device: Annotated[Optional[str], typer.Option(help="auto, cpu, cuda or cuda:N (train.device).")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last "
+                                                          "checkpoint.")] = False,
+    quiet: Quiet = False,
+) -> None:
+    """Train a model: autoencoder pre-training, then the conditional flow (early stopping on the val split)."""
+    from ..stages.train import train
+
+    with user_errors():
+        train(data, out, fold=fold, model=model, config_path=config, overrides=tuple(set_ or ()), seed=seed,
+              device=device, resume=resume, quiet=quiet)

@@ -1,0 +1,157 @@
+"""Model files and training-state files that load without unpickling arbitrary objects.
+
+* A *model file* (``model.safetensors``) holds the weights as safetensors and, in the safetensors metadata, the
+  model family, its :class:`ModelConfig`, the :class:`DataSpec`, the log-likelihood space and the format version
+  as JSON strings. :func:`load_model` rebuilds the model from that alone.
+* A *training-state file* (``state.pt``) holds everything needed to resume training (weights, optimiser and
+  scheduler state, early-stopping bookkeeping, the training log) as plain containers of tensors and numbers,
+  written with ``torch.save`` and read back with ``torch.load(weights_only=True)``.
+
+Both are written atomically (temporary file, fsync, rename): a killed run leaves the previous file intact. A file
+of another model family or of another major format version is refused with a one-line :class:`TrajflowError`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save as safetensors_save
+
+from .. import __version__
+from ..errors import TrajflowError
+from ..util.atomic import atomic_write_bytes
+from .config import DataSpec, RunConfig
+from .models import TrajectoryModel, build_model
+from .runtime import tune_cpu_allocator
+
+MODEL_FORMAT = "trajflow-model"
+STATE_FORMAT = "trajflow-train-state"
+#: major.minor; a different major version cannot be read.
+FORMAT_VERSION = "1.0"
+MODEL_FILE = "model.safetensors"
+
+
+def save_model(model: TrajectoryModel, path: str | Path, extra: dict[str, Any] | None = None) -> Path:
+    """Write `model` to `path` (a ``.safetensors`` file, or a directory that receives ``model.safetensors``)."""
+    path = _model_path(Path(path))
+    tensors = {name: value.detach().to("cpu").contiguous() for name, value in model.state_dict().items()}
+    metadata = {
+        "format": MODEL_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "model": model.name,
+        "log_lik_space": model.log_lik_space,
+        "config": json.dumps(RunConfig(model=model.config).to_dict()["model"], sort_keys=True),
+        "spec": json.dumps(model.spec.to_dict(), sort_keys=True),
+        "trajflow_version": __version__,
+        "extra": json.dumps(extra or {}, sort_keys=True),
+    }
+    atomic_write_bytes(path, safetensors_save(tensors, metadata=metadata))
+    return path
+
+
+def read_model_metadata(path: str | Path) -> dict[str, Any]:
+    """The decoded metadata of a model file (model, config, spec, versions, extra) without building the model."""
+    path = _model_path(Path(path))
+    metadata, _ = _read_safetensors(path, tensors=False)
+    return _decode_metadata(path, metadata)
+
+
+def load_model(path: str | Path, expected_model: str | None = None,
+               device: str | torch.device = "cpu") -> TrajectoryModel:
+    """Rebuild a model from a model file (or a run directory holding ``final/model.safetensors``), in eval mode.
+
+    Raises :class:`TrajflowError` naming the file when it is missing, unreadable, of another format version, of
+    another model family than `expected_model`, or does not match the architecture its config describes.
+    """
+    tune_cpu_allocator()
+    path = _model_path(Path(path))
+    metadata, tensors = _read_safetensors(path, tensors=True)
+    meta = _decode_metadata(path, metadata)
+    if expected_model is not None and meta["model"] != expected_model:
+        raise TrajflowError(f"{path}: checkpoint is a {meta['model']!r} model, not {expected_model!r}")
+    try:
+        model = build_model(meta["config"], meta["spec"])
+        model.load_state_dict(tensors, strict=True)
+    except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise TrajflowError(f"{path}: weights do not match the {meta['model']!r} architecture ({first})") from None
+    return model.to(device).eval()
+
+
+def save_training_state(path: str | Path, state: dict[str, Any]) -> None:
+    """Atomically write a resumable training state (plain containers of tensors / numbers / strings)."""
+    payload = {"format": STATE_FORMAT, "format_version": FORMAT_VERSION, **state}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_training_state(path: str | Path, expected_model: str | None = None) -> dict[str, Any]:
+    """Read a training state written by :func:`save_training_state` with ``weights_only=True``."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrajflowError(f"{path}: training state not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to parse means a corrupt or foreign file
+        raise TrajflowError(f"{path}: not a readable trajflow training state ({_short(exc)})") from None
+    if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
+        raise TrajflowError(f"{path}: not a trajflow training state")
+    _check_version(path, str(state.get("format_version", "")))
+    if expected_model is not None and state.get("model") != expected_model:
+        raise TrajflowError(f"{path}: training state is for a {state.get('model')!r} model, not {expected_model!r}")
+    return state
+
+
+def _model_path(path: Path) -> Path:
+    """A model file, or the model file inside a run directory (``final/``) or a plain directory."""
+    if path.is_dir() and (path / "final" / MODEL_FILE).is_file():
+        return path / "final" / MODEL_FILE
+    return path / MODEL_FILE if path.is_dir() or path.suffix == "" else path
+
+
+def _read_safetensors(path: Path, tensors: bool) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
+    if not path.is_file():
+        raise TrajflowError(f"{path}: checkpoint not found")
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+            values = {name: handle.get_tensor(name) for name in handle.keys()} if tensors else {}
+    except Exception as exc:  # noqa: BLE001 - safetensors raises several types for corrupt files
+        raise TrajflowError(f"{path}: not a readable trajflow checkpoint ({_short(exc)})") from None
+    return metadata, values
+
+
+def _decode_metadata(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
+    if metadata.get("format") != MODEL_FORMAT:
+        raise TrajflowError(f"{path}: not a trajflow model checkpoint")
+    _check_version(path, metadata.get("format_version", ""))
+    try:
+        config = RunConfig.from_dict({"model": json.loads(metadata["config"])}, source=str(path)).model
+        spec = DataSpec.from_dict(json.loads(metadata["spec"]))
+        extra = json.loads(metadata.get("extra", "{}"))
+    except (KeyError, ValueError, TypeError, TrajflowError) as exc:
+        raise TrajflowError(f"{path}: checkpoint metadata is damaged ({_short(exc)})") from None
+    if config.name != metadata.get("model"):
+        raise TrajflowError(f"{path}: checkpoint metadata is inconsistent (model {metadata.get('model')!r})")
+    return {"model": metadata["model"], "config": config, "spec": spec, "extra": extra,
+            "log_lik_space": metadata.get("log_lik_space", ""), "format_version": metadata["format_version"],
+            "trajflow_version": metadata.get("trajflow_version", "")}
+
+
+def _check_version(path: Path, version: str) -> None:
+    major = version.split(".")[0]
+    if major != FORMAT_VERSION.split(".")[0]:
+        raise TrajflowError(f"{path}: checkpoint format version {version or '?'} is not supported "
+                            f"(this trajflow reads {FORMAT_VERSION.split('.')[0]}.x)")
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+

@@ -1,0 +1,218 @@
+"""Context encoders that condition the flow (paper III-C and appendix).
+
+* :class:`PastEncoder` -- GRU over the target's past displacements: Linear(2->16)+ReLU -> GRU(16,16,3) -> Linear(->64).
+* :class:`SocialGNN` -- message passing over all agents present at t0 (target + neighbours), 4 layers 32 wide.
+* :class:`MapEncoder` -- CNN over a heading-aligned grey-scale crop (1 x 156 x 257 -> 64).
+* :class:`ContextEncoder` -- their concatenation, computed from a :class:`SceneBatch` in the target frame.
+
+Everything is batched over problems and neighbours with masks; N (neighbours) may be 0.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from .batch import NUM_AGENT_TYPES, SceneBatch
+from .normalize import Frame, past_displacements, to_local
+
+
+class PastEncoder(nn.Module):
+    """Linear(2 -> embed) + ReLU -> GRU(embed, hidden, layers) -> Linear(hidden -> out) on the last step."""
+
+    def __init__(self, embed: int = 16, hidden: int = 16, layers: int = 3, out: int = 64) -> None:
+        super().__init__()
+        self.embed = nn.Linear(2, embed)
+        self.gru = nn.GRU(embed, hidden, layers, batch_first=True)
+        self.out = nn.Linear(hidden, out)
+        self.out_features = out
+
+    def forward(self, displacements: Tensor) -> Tensor:
+        """Displacements (B, T, 2) -> encoding (B, out)."""
+        seq, _ = self.gru(F.relu(self.embed(displacements)))
+        return self.out(seq[:, -1])
+
+
+class SocialGNN(nn.Module):
+    """Interaction encoder over the target and its neighbours (paper appendix, "Social Interactions").
+
+    Nodes are all agents present at t0, the target first. A node starts as ``Linear(past encoding ++ one-hot class)``
+    of its past in the target frame. Each of the ``layers`` rounds computes a message for every ordered pair (b -> a)
+    with ``MLP(x_b ++ x_a ++ class_b ++ class_a ++ (p_a - p_b) ++ |p_a - p_b|)`` (positions at t0), sums the
+    messages from valid senders, and updates ``x_a <- MLP(x_a ++ m_a) + x_a``. The read-out is the mean over valid
+    nodes. One past encoder is shared by all classes (the class enters through the one-hot inputs), which keeps the
+    graph static for DDP and the computation a single batched GRU call.
+    """
+
+    def __init__(self, width: int = 32, layers: int = 4, past: PastEncoder | None = None) -> None:
+        super().__init__()
+        self.past = past if past is not None else PastEncoder()
+        self.embed = nn.Linear(self.past.out_features + NUM_AGENT_TYPES, width)
+        edge = 2 * NUM_AGENT_TYPES + 3
+        # Message MLP of layer l: ReLU(W_s x_b + W_r x_a + W_e e_ab + b) -> Linear. Its first layer is split by
+        # input block so node terms are computed per node, not per edge; the edge terms of all layers are one
+        # matrix product, as the edge features do not change between layers.
+        self.msg_sender = nn.ModuleList(nn.Linear(width, width) for _ in range(layers))
+        self.msg_receiver = nn.ModuleList(nn.Linear(width, width, bias=False) for _ in range(layers))
+        self.msg_edge = nn.Linear(edge, width * layers, bias=False)
+        self.msg_out = nn.ModuleList(nn.Linear(width, width) for _ in range(layers))
+        self.update = nn.ModuleList(nn.Sequential(nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, width))
+                                    for _ in range(layers))
+        self.out_features = width
+
+    def forward(self, nodes_past: Tensor, nodes_valid: Tensor, nodes_mask: Tensor, nodes_type: Tensor) -> Tensor:
+        """Node pasts (B, n, P, 2) in the target frame, step validity (B, n, P), node mask (B, n), classes (B, n).
+
+        Returns the graph encoding (B, width). Only real nodes' pasts are encoded. Messages are computed on the
+        padded (B, n, n) layout when padding wastes little, and otherwise only for the edges between real nodes
+        of each problem (flattened over the batch), so that a batch mixing crowded and empty scenes costs
+        sum(n_i^2) edges rather than B * max(n_i)^2. Both give the same result.
+        """
+        batch, n = nodes_mask.shape
+        flat_mask = nodes_mask.reshape(-1)
+        onehot = F.one_hot(nodes_type.clamp(0, NUM_AGENT_TYPES - 1), NUM_AGENT_TYPES).to(nodes_past.dtype)
+        disp = past_displacements(nodes_past, nodes_valid).reshape(batch * n, -1, 2)[flat_mask]
+        encoded = nodes_past.new_zeros(batch * n, self.past.out_features)
+        encoded = encoded.masked_scatter(flat_mask[:, None], self.past(disp)).reshape(batch, n, -1)
+        x = self.embed(torch.cat((encoded, onehot), dim=-1))                                       # (B, n, width)
+        pos = last_observed(nodes_past, nodes_valid)                                              # (B, n, 2) at t0
+        counts = nodes_mask.sum(1)
+        if batch * n * n <= 2 * int((counts * counts).sum()):
+            x = self._dense_rounds(x, pos, onehot, nodes_mask)
+        else:
+            x = self._sparse_rounds(x, pos, onehot, nodes_mask)
+        weights = nodes_mask.to(x.dtype)
+        return (x * weights[..., None]).sum(1) / weights.sum(1, keepdim=True).clamp(min=1.0)
+
+    @staticmethod
+    def _edge_features(onehot_sender: Tensor, onehot_receiver: Tensor, rel: Tensor) -> Tensor:
+        """Edge features: class of the sender, class of the receiver, p_a - p_b, |p_a - p_b|."""
+        return torch.cat((onehot_sender, onehot_receiver, rel, torch.sqrt((rel ** 2).sum(-1, keepdim=True) + 1e-12)),
+                         dim=-1)
+
+    def _dense_rounds(self, x: Tensor, pos: Tensor, onehot: Tensor, mask: Tensor) -> Tensor:
+        """Message passing on the padded layout: edge [p, a, b] carries the message b -> a."""
+        n = mask.shape[1]
+        edge = self._edge_features(onehot[:, None, :, :].expand(-1, n, -1, -1),
+                                   onehot[:, :, None, :].expand(-1, -1, n, -1),
+                                   pos[:, :, None, :] - pos[:, None, :, :])
+        sender_ok = mask[:, None, :, None].to(x.dtype)                                            # (B, 1, n_b, 1)
+        senders = sender_ok.sum(dim=2)                                                            # (B, 1, 1)
+        edge_terms = self.msg_edge(edge).chunk(len(self.update), dim=-1)
+        for sender, receiver, edge_term, out, update in zip(self.msg_sender, self.msg_receiver, edge_terms,
+                                                            self.msg_out, self.update):
+            hidden = F.relu(sender(x)[:, None, :, :] + receiver(x)[:, :, None, :] + edge_term)
+            # sum_b out(h_ab) over valid senders b == out applied to the sum (out is affine).
+            message = F.linear((hidden * sender_ok).sum(dim=2), out.weight) + senders * out.bias
+            x = update(torch.cat((x, message), dim=-1)) + x
+        return x
+
+    def _sparse_rounds(self, x: Tensor, pos: Tensor, onehot: Tensor, mask: Tensor) -> Tensor:
+        """The same rounds over the real nodes only, as index operations on flattened nodes and edges."""
+        batch, n = mask.shape
+        flat_mask = mask.reshape(-1)
+        problem = torch.arange(batch, device=mask.device).repeat_interleave(n)[flat_mask]         # (K,)
+        node_id = torch.cumsum(flat_mask.long(), 0).reshape(batch, n) - 1
+        p_idx, a_idx, b_idx = (mask[:, :, None] & mask[:, None, :]).nonzero(as_tuple=True)
+        receiver_id, sender_id = node_id[p_idx, a_idx], node_id[p_idx, b_idx]                     # (E,)
+        nodes = x.reshape(batch * n, -1)[flat_mask]
+        flat_pos, flat_onehot = pos.reshape(batch * n, 2)[flat_mask], onehot.reshape(batch * n, -1)[flat_mask]
+        edge = self._edge_features(flat_onehot[sender_id], flat_onehot[receiver_id],
+                                   flat_pos[receiver_id] - flat_pos[sender_id])
+        senders = mask.sum(1).to(x.dtype)[problem][:, None]                                      # (K, 1)
+        edge_terms = self.msg_edge(edge).chunk(len(self.update), dim=-1)
+        for sender, receiver, edge_term, out, update in zip(self.msg_sender, self.msg_receiver, edge_terms,
+                                                            self.msg_out, self.update):
+            hidden = F.relu(sender(nodes)[sender_id] + receiver(nodes)[receiver_id] + edge_term)
+            pooled = torch.zeros_like(nodes).index_add_(0, receiver_id, hidden)
+            message = F.linear(pooled, out.weight) + senders * out.bias
+            nodes = update(torch.cat((nodes, message), dim=-1)) + nodes
+        return x.new_zeros(batch * n, x.shape[-1]).masked_scatter(flat_mask[:, None], nodes).reshape(batch, n, -1)
+
+
+class MapEncoder(nn.Module):
+    """3 conv layers (kernel 5, stride 4; zero padding 1 on the first two) then Linear(->128) -> Linear(->out)."""
+
+    def __init__(self, height: int = 156, width: int = 257, out: int = 64) -> None:
+        super().__init__()
+        self.convs = nn.Sequential(nn.Conv2d(1, 8, 5, stride=4, padding=1), nn.ReLU(),
+                                   nn.Conv2d(8, 16, 5, stride=4, padding=1), nn.ReLU(),
+                                   nn.Conv2d(16, 32, 5, stride=4), nn.ReLU())
+        h, w = height, width
+        for pad in (1, 1, 0):
+            h, w = (h + 2 * pad - 5) // 4 + 1, (w + 2 * pad - 5) // 4 + 1
+        self.head = nn.Sequential(nn.Linear(32 * h * w, 128), nn.ReLU(), nn.Linear(128, out))
+        self.out_features = out
+        self.size = (height, width)
+
+    def forward(self, crop: Tensor) -> Tensor:
+        """Crops (B, 1, H, W) in [0, 1] -> (B, out)."""
+        if tuple(crop.shape[-2:]) != self.size:
+            raise ValueError(f"map crops must be {self.size[0]} x {self.size[1]}, got "
+                             f"{crop.shape[-2]} x {crop.shape[-1]}")
+        return self.head(self.convs(crop).flatten(1))
+
+
+class ContextEncoder(nn.Module):
+    """The flow's conditioning vector: past encoding ++ social encoding ++ map encoding (those enabled)."""
+
+    def __init__(self, *, past: PastEncoder, social: SocialGNN | None, map_encoder: MapEncoder | None) -> None:
+        super().__init__()
+        self.past = past
+        self.social = social
+        self.map = map_encoder
+        self.out_features = (past.out_features + (social.out_features if social is not None else 0)
+                             + (map_encoder.out_features if map_encoder is not None else 0))
+
+    def forward(self, batch: SceneBatch, frame: Frame, local_past: Tensor) -> Tensor:
+        """Context (B, C) of each problem; `local_past` is the target's past in its own frame (B, P, 2)."""
+        parts = [self.past(past_displacements(local_past))]
+        if self.social is not None:
+            parts.append(self.social(*social_nodes(batch, frame, local_past)))
+        if self.map is not None:
+            if batch.map_crop is None:
+                raise ValueError("this model was trained with maps but the batch has no map_crop")
+            parts.append(self.map(batch.map_crop))
+        return torch.cat(parts, dim=-1)
+
+
+def last_observed(positions: Tensor, valid: Tensor) -> Tensor:
+    """The last observed position of each track (..., P, 2) given step validity (..., P); zero if never observed."""
+    steps = torch.arange(valid.shape[-1], device=valid.device).expand_as(valid)
+    last = torch.where(valid, steps, torch.full_like(steps, -1)).max(dim=-1).values
+    picked = positions.gather(-2, last.clamp(min=0)[..., None, None].expand(*last.shape, 1, 2)).squeeze(-2)
+    return picked * (last >= 0)[..., None].to(positions.dtype)
+
+
+def compact_neighbours(batch: SceneBatch) -> SceneBatch:
+    """Move real neighbours to the front and drop columns that are padding in every problem of the batch."""
+    mask = batch.neighbours_mask
+    if mask.shape[1] == 0:
+        return batch
+    order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)
+    keep = int(mask.sum(1).max().item()) if mask.numel() else 0
+    order = order[:, :keep]
+
+    def take(value: Tensor) -> Tensor:
+        index = order.reshape(*order.shape, *([1] * (value.dim() - 2))).expand(-1, -1, *value.shape[2:])
+        return value.gather(1, index)
+
+    return SceneBatch(past=batch.past, agent_type=batch.agent_type, neighbours=take(batch.neighbours),
+                      neighbours_valid=take(batch.neighbours_valid), neighbours_mask=take(batch.neighbours_mask),
+                      neighbours_type=take(batch.neighbours_type), future=batch.future, map_crop=batch.map_crop)
+
+
+def social_nodes(batch: SceneBatch, frame: Frame, local_past: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Graph nodes (target first, then neighbours) in the target frame: pasts, step validity, mask, classes."""
+    batch = compact_neighbours(batch)
+    size, steps = local_past.shape[:2]
+    valid_nb = batch.neighbours_valid & batch.neighbours_mask[..., None]
+    nb_local = to_local(batch.neighbours, frame) * valid_nb[..., None].to(local_past.dtype)
+    nodes_past = torch.cat((local_past[:, None], nb_local), dim=1)
+    target_valid = torch.ones(size, 1, steps, dtype=torch.bool, device=local_past.device)
+    nodes_valid = torch.cat((target_valid, valid_nb), dim=1)
+    nodes_mask = torch.cat((torch.ones(size, 1, dtype=torch.bool, device=local_past.device),
+                            batch.neighbours_mask), dim=1)
+    nodes_type = torch.cat((batch.agent_type[:, None], batch.neighbours_type), dim=1)
+    return nodes_past, nodes_valid, nodes_mask, nodes_type

@@ -1,0 +1,376 @@
+"""The model families behind ``--model``: TrajFlow, TrajFlow without autoencoder, FloMo and constant velocity.
+
+Common interface (:class:`TrajectoryModel`):
+
+* ``stages`` -- the training stages in order; ``stage_loss(stage, batch)`` is what that stage minimises and
+  ``stage_parameters(stage)`` what it trains (everything else is frozen while it runs). A stage listed in
+  ``closed_form_stages`` is fitted in one pass by ``fit_stage(stage, batch)`` instead of by gradient descent.
+* ``loss(batch)`` -- the final stage's loss (the flow NLL for the flow models).
+* ``log_likelihood(batch)`` -- log-density of each problem's ground-truth future under the model, in the space
+  named by ``log_lik_space``.
+* ``sample(batch, n, steps=None)`` -- :class:`Samples`: ``trajectories`` (B, n, steps, 2) in WORLD coordinates and
+  ``log_lik`` (B, n), the log-density of each sample in ``log_lik_space`` (NOT a density over world trajectories):
+
+  ============== =====================================================================================
+  trajflow       the flow's density of the 20-d autoencoder latent (nats)
+  trajflow-no-ae the flow's density of the 2*n_future alpha-scaled displacements in the target frame
+  flomo          as trajflow-no-ae
+  cv             the Gaussian density of the 2*steps alpha-scaled displacements in the target frame
+  ============== =====================================================================================
+
+  ``steps`` may exceed n_future: TrajFlow's auto-regressive decoder rolls out further; the direct-displacement
+  models extend beyond their trained horizon at constant velocity (their last displacement), as in the paper.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass, replace
+from typing import ClassVar, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from .autoencoder import TrajectoryAutoencoder
+from .batch import SceneBatch
+from .config import DataSpec, ModelConfig
+from .encoders import ContextEncoder, MapEncoder, PastEncoder, SocialGNN
+from .flow import ConditionalSplineFlow
+from .normalize import Frame, denormalize_future, normalize_future, target_frame, to_local, to_world
+
+
+class Samples(NamedTuple):
+    """Sampled futures in world coordinates (B, n, steps, 2) and their log-likelihoods (B, n)."""
+
+    trajectories: Tensor
+    log_lik: Tensor
+
+
+@dataclass(frozen=True)
+class Normalized:
+    """A batch in its target frames: the frames, the target's local past (B, P, 2) and, when known, the
+    alpha-scaled future displacements (B, F, 2)."""
+
+    frame: Frame
+    local_past: Tensor
+    future: Tensor | None
+
+
+class TrajectoryModel(nn.Module, abc.ABC):
+    """Base class: normalisation, the stage protocol and the sampling contract (see the module docstring)."""
+
+    name: ClassVar[str]
+    stages: ClassVar[tuple[str, ...]]
+    closed_form_stages: ClassVar[tuple[str, ...]] = ()
+    log_lik_space: ClassVar[str]
+
+    def __init__(self, config: ModelConfig, spec: DataSpec) -> None:
+        super().__init__()
+        self.config = config
+        self.spec = spec
+
+    def normalize(self, batch: SceneBatch) -> Normalized:
+        """Target frames, local past and (if present) scaled future displacements of `batch`."""
+        frame = target_frame(batch.past)
+        future = None if batch.future is None else normalize_future(batch.future, frame, self.config.alpha)
+        return Normalized(frame, to_local(batch.past, frame), future)
+
+    @abc.abstractmethod
+    def stage_parameters(self, stage: str) -> list[nn.Parameter]:
+        """Parameters trained by `stage`."""
+
+    @abc.abstractmethod
+    def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
+        """Scalar loss minimised by `stage` on `batch` (which must include the future)."""
+
+    def fit_stage(self, stage: str, batch: SceneBatch) -> None:
+        """Closed-form fit of a stage in ``closed_form_stages`` on the whole training split."""
+        raise ValueError(f"stage {stage!r} of {self.name} is trained by gradient descent")
+
+    def loss(self, batch: SceneBatch) -> Tensor:
+        """The final stage's loss: mean negative log-likelihood (nats) in ``log_lik_space``."""
+        return self.stage_loss(self.stages[-1], batch)
+
+    @abc.abstractmethod
+    def log_likelihood(self, batch: SceneBatch) -> Tensor:
+        """Log-density (B,) of each ground-truth future in ``log_lik_space``."""
+
+    @abc.abstractmethod
+    def sample(self, batch: SceneBatch, n: int, steps: int | None = None,
+               generator: torch.Generator | None = None) -> Samples:
+        """`n` futures per problem, `steps` long (default n_future), in world coordinates, with log-likelihoods.
+
+        Runs without gradients; the generator (optional) makes the draw reproducible.
+        """
+
+    def _require_future(self, batch: SceneBatch) -> None:
+        if batch.future is None:
+            raise ValueError("this loss needs the ground-truth future (batch.future is None)")
+
+
+def _check_steps(steps: int | None, default: int) -> int:
+    steps = default if steps is None else int(steps)
+    if steps < 1:
+        raise ValueError(f"steps must be at least 1, got {steps}")
+    return steps
+
+
+def extend_constant_velocity(displacements: Tensor, steps: int) -> Tensor:
+    """Truncate (..., F, 2) displacements to `steps`, or extend them by repeating the last displacement."""
+    have = displacements.shape[-2]
+    if steps <= have:
+        return displacements[..., :steps, :]
+    tail = displacements[..., -1:, :].expand(*displacements.shape[:-2], steps - have, 2)
+    return torch.cat((displacements, tail), dim=-2)
+
+
+class FlowModel(TrajectoryModel):
+    """A conditional flow over a per-problem target vector, conditioned on the context encoders."""
+
+    log_lik_space = "scaled_displacements"
+
+    def __init__(self, config: ModelConfig, spec: DataSpec, features: int, seed: int = 0) -> None:
+        super().__init__(config, spec)
+        past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
+        social = None
+        if config.use_social:
+            node_past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
+            social = SocialGNN(config.gnn_width, config.gnn_layers, node_past)
+        map_encoder = None
+        if config.use_map and spec.has_map:
+            map_encoder = MapEncoder(config.map_height, config.map_width, config.map_out)
+        self.context = ContextEncoder(past=past, social=social, map_encoder=map_encoder)
+        self.flow = ConditionalSplineFlow(features, self.context.out_features, layers=config.flow_layers,
+                                          bins=config.flow_bins, tail_bound=config.flow_tail_bound,
+                                          hidden=tuple(config.flow_hidden), seed=seed)
+
+    @abc.abstractmethod
+    def targets(self, norm: Normalized) -> Tensor:
+        """The vector (B, D) the flow models for each problem."""
+
+    @abc.abstractmethod
+    def decode(self, x: Tensor, steps: int) -> Tensor:
+        """Flow vectors (..., D) -> alpha-scaled displacements (..., steps, 2) in the target frame."""
+
+    def flow_parameters(self) -> list[nn.Parameter]:
+        return [*self.context.parameters(), *self.flow.parameters()]
+
+    def flow_nll(self, batch: SceneBatch) -> Tensor:
+        """Mean negative log-likelihood of the batch's targets under the conditional flow."""
+        self._require_future(batch)
+        norm = self.normalize(batch)
+        context = self.context(batch, norm.frame, norm.local_past)
+        return -self.flow.log_prob(self.targets(norm), context).mean()
+
+    def log_likelihood(self, batch: SceneBatch) -> Tensor:
+        self._require_future(batch)
+        norm = self.normalize(batch)
+        context = self.context(batch, norm.frame, norm.local_past)
+        return self.flow.log_prob(self.targets(norm), context)
+
+    @torch.no_grad()
+    def sample(self, batch: SceneBatch, n: int, steps: int | None = None,
+               generator: torch.Generator | None = None) -> Samples:
+        steps = _check_steps(steps, self.spec.n_future)
+        norm = self.normalize(batch)
+        context = self.context(batch, norm.frame, norm.local_past)
+        x, log_lik = self.flow.sample(context, n, generator)                      # (n, B, D), (n, B)
+        displacements = self.decode(x, steps).transpose(0, 1)                     # (B, n, steps, 2)
+        return Samples(denormalize_future(displacements, norm.frame, self.config.alpha), log_lik.transpose(0, 1))
+
+
+class TrajFlow(FlowModel):
+    """TrajFlow: an RNN autoencoder (stage 1, then frozen) and a conditional flow over its latent (stage 2)."""
+
+    name = "trajflow"
+    stages = ("autoencoder", "flow")
+    log_lik_space = "latent"
+
+    def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
+        super().__init__(config, spec, config.latent_dim, seed)
+        self.autoencoder = TrajectoryAutoencoder(config.ae_embed, config.ae_hidden, config.ae_layers,
+                                                 config.latent_dim)
+
+    def stage_parameters(self, stage: str) -> list[nn.Parameter]:
+        if stage == "autoencoder":
+            return list(self.autoencoder.parameters())
+        if stage == "flow":
+            return self.flow_parameters()
+        raise ValueError(f"unknown stage {stage!r} for {self.name}")
+
+    def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
+        if stage == "autoencoder":
+            self._require_future(batch)
+            return self.autoencoder.reconstruction_loss(self.normalize(batch).future, self.config.alpha)
+        if stage == "flow":
+            return self.flow_nll(batch)
+        raise ValueError(f"unknown stage {stage!r} for {self.name}")
+
+    def targets(self, norm: Normalized) -> Tensor:
+        # The autoencoder is frozen while the flow trains: its latents are fixed targets.
+        with torch.no_grad():
+            return self.autoencoder.encode(norm.future)
+
+    def decode(self, x: Tensor, steps: int) -> Tensor:
+        return self.autoencoder.decode(x, steps)
+
+
+class TrajFlowNoAE(FlowModel):
+    """The ablation "TrajFlow w/o AE": the same flow directly over the 2*n_future scaled displacements."""
+
+    name = "trajflow-no-ae"
+    stages = ("flow",)
+
+    def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
+        super().__init__(config, spec, 2 * spec.n_future, seed)
+
+    def stage_parameters(self, stage: str) -> list[nn.Parameter]:
+        if stage != "flow":
+            raise ValueError(f"unknown stage {stage!r} for {self.name}")
+        return self.flow_parameters()
+
+    def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
+        if stage != "flow":
+            raise ValueError(f"unknown stage {stage!r} for {self.name}")
+        return self.flow_nll(batch)
+
+    def targets(self, norm: Normalized) -> Tensor:
+        return norm.future.flatten(1)
+
+    def decode(self, x: Tensor, steps: int) -> Tensor:
+        displacements = x.unflatten(-1, (self.spec.n_future, 2))
+        return extend_constant_velocity(displacements, steps)
+
+
+class FloMo(TrajFlowNoAE):
+    """FloMo (Schoeller & Knoll 2021): TrajFlow w/o AE plus FloMo's training-time regularisation.
+
+    While training (``self.training``), each problem's scene is scaled about the target's position at t0 by
+    s ~ N(1, flomo_scale_std) truncated to [flomo_scale_min, flomo_scale_max] (FloMo's scaling augmentation),
+    and noise is added to the flow's input: std beta on scaled displacements with |y| < flomo_zero_threshold
+    (avoiding infinite-density points for standing agents), std gamma on all others. Evaluation is noise-free.
+    """
+
+    name = "flomo"
+
+    def flow_nll(self, batch: SceneBatch) -> Tensor:
+        if self.training:
+            batch = scale_scene(batch, self._scale_factors(len(batch), batch.past))
+        return super().flow_nll(batch)
+
+    def targets(self, norm: Normalized) -> Tensor:
+        y = super().targets(norm)
+        if not self.training:
+            return y
+        cfg = self.config
+        small = y.abs() < cfg.flomo_zero_threshold
+        std = torch.where(small, torch.full_like(y, cfg.flomo_beta), torch.full_like(y, cfg.flomo_gamma))
+        return y + std * torch.randn_like(y)
+
+    def _scale_factors(self, n: int, like: Tensor) -> Tensor:
+        """Truncated-normal scale factors by inverse-CDF sampling (B,)."""
+        cfg = self.config
+        if cfg.flomo_scale_std == 0:
+            return like.new_ones(n)
+        normal = torch.distributions.Normal(0.0, 1.0)
+        lo = normal.cdf(torch.tensor((cfg.flomo_scale_min - 1) / cfg.flomo_scale_std))
+        hi = normal.cdf(torch.tensor((cfg.flomo_scale_max - 1) / cfg.flomo_scale_std))
+        u = lo + (hi - lo) * torch.rand(n, device=like.device, dtype=like.dtype)
+        s = 1 + cfg.flomo_scale_std * torch.special.ndtri(u)
+        return s.clamp(cfg.flomo_scale_min, cfg.flomo_scale_max)
+
+
+def scale_scene(batch: SceneBatch, scale: Tensor) -> SceneBatch:
+    """Scale every position of each problem (B,) about the target's position at t0 (map crops unchanged)."""
+    centre = batch.past[:, -1]
+    view = scale[:, None, None]
+
+    def about(points: Tensor, s: Tensor, c: Tensor) -> Tensor:
+        return c + s * (points - c)
+
+    neighbours = about(batch.neighbours, view[..., None], centre[:, None, None, :])
+    neighbours = neighbours * batch.neighbours_valid[..., None].to(neighbours.dtype)
+    future = None if batch.future is None else about(batch.future, view, centre[:, None, :])
+    return replace(batch, past=about(batch.past, view, centre[:, None, :]), neighbours=neighbours, future=future)
+
+
+class ConstantVelocity(TrajectoryModel):
+    """Constant velocity from the last past step plus isotropic Gaussian noise growing linearly with horizon.
+
+    Step k (1-based) of the future is N(x0 + k v, (sigma k)^2 I); sigma is fitted in closed form (maximum
+    likelihood) on the training split. It is the sanity floor every report shows.
+    """
+
+    name = "cv"
+    stages = ("fit",)
+    closed_form_stages = ("fit",)
+    log_lik_space = "scaled_displacements"
+
+    def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
+        super().__init__(config, spec)
+        self.register_buffer("sigma", torch.tensor(1.0))
+
+    def stage_parameters(self, stage: str) -> list[nn.Parameter]:
+        return []
+
+    def _velocity(self, local_past: Tensor) -> Tensor:
+        if local_past.shape[1] < 2:
+            return torch.zeros_like(local_past[:, 0])
+        return local_past[:, -1] - local_past[:, -2]
+
+    def _residuals(self, batch: SceneBatch) -> tuple[Tensor, Tensor]:
+        """Per-step residuals divided by the step index, (B, F, 2), and the step indices (F,)."""
+        self._require_future(batch)
+        norm = self.normalize(batch)
+        k = torch.arange(1, batch.future.shape[1] + 1, device=batch.past.device, dtype=batch.past.dtype)
+        mean = k[None, :, None] * self._velocity(norm.local_past)[:, None, :]
+        local_future = to_local(batch.future, norm.frame)
+        return (local_future - mean) / k[None, :, None], k
+
+    def fit_stage(self, stage: str, batch: SceneBatch) -> None:
+        if stage != "fit":
+            raise ValueError(f"unknown stage {stage!r} for {self.name}")
+        scaled, _ = self._residuals(batch)
+        self.sigma.copy_(torch.sqrt((scaled ** 2).mean()).clamp(min=1e-4))
+
+    def _log_density(self, scaled: Tensor, k: Tensor) -> Tensor:
+        """Density of positions expressed as alpha-scaled displacements (unit-Jacobian cumsum, then * alpha)."""
+        sigma = self.sigma.to(scaled.dtype)
+        per_dim = -0.5 * (scaled / sigma) ** 2 - torch.log(sigma * k)[..., :, None] - 0.5 * math.log(2 * math.pi)
+        return per_dim.sum((-1, -2)) - 2 * k.shape[0] * math.log(self.config.alpha)
+
+    def log_likelihood(self, batch: SceneBatch) -> Tensor:
+        scaled, k = self._residuals(batch)
+        return self._log_density(scaled, k)
+
+    def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
+        if stage != "fit":
+            raise ValueError(f"unknown stage {stage!r} for {self.name}")
+        return -self.log_likelihood(batch).mean()
+
+    @torch.no_grad()
+    def sample(self, batch: SceneBatch, n: int, steps: int | None = None,
+               generator: torch.Generator | None = None) -> Samples:
+        steps = _check_steps(steps, self.spec.n_future)
+        norm = self.normalize(batch)
+        size = len(batch)
+        k = torch.arange(1, steps + 1, device=batch.past.device, dtype=batch.past.dtype)
+        eps = torch.randn((size, n, steps, 2), generator=generator, device=batch.past.device, dtype=batch.past.dtype)
+        velocity = self._velocity(norm.local_past)[:, None, None, :]
+        local = k[:, None] * velocity + self.sigma.to(eps.dtype) * k[:, None] * eps
+        log_lik = self._log_density(eps * self.sigma.to(eps.dtype), k)
+        return Samples(to_world(local, norm.frame), log_lik)
+
+
+MODEL_CLASSES: dict[str, type[TrajectoryModel]] = {
+    cls.name: cls for cls in (TrajFlow, TrajFlowNoAE, FloMo, ConstantVelocity)
+}
+
+
+def build_model(config: ModelConfig, spec: DataSpec, seed: int = 0) -> TrajectoryModel:
+    """A fresh model of family ``config.name`` for data described by `spec`; `seed` fixes the flow permutations."""
+    config.validate()
+    if spec.n_future < 1 or spec.n_past < 1:
+        raise ValueError("n_past and n_future must be at least 1")
+    return MODEL_CLASSES[config.name](config, spec, seed=seed)
