@@ -13,6 +13,11 @@ from rich.table import Table
 from .. import __version__
 from ..util.progress import console
 from .common import Overwrite, Quiet, set_debug, user_errors
+from .forking_cmd import augment_forking_command, augment_scale_rotate_command, ingest_forking_paths_command
+from .nuscenes_cmd import ingest_nuscenes_command
+from .report_cmd import report_command
+from .round_cmd import ingest_round_command
+from .train_cmd import train_command
 
 app = typer.Typer(
     name="trajflow",
@@ -23,6 +28,8 @@ app = typer.Typer(
 )
 ingest_app = typer.Typer(help="Turn raw datasets into the unified Parquet scene dataset.", no_args_is_help=True)
 app.add_typer(ingest_app, name="ingest")
+augment_app = typer.Typer(help="Scaling / rotation augmentation into a new dataset.", no_args_is_help=True)
+app.add_typer(augment_app, name="augment")
 
 #: the main result of a command (tables, paths) goes to stdout; progress and errors go to stderr
 stdout = Console()
@@ -146,6 +153,82 @@ def _print_summary(summary: dict) -> None:
     for row in summary["agent_types"]:
         types.add_row(row["agent_type"], str(row["agents"]), str(row["rows"]))
     stdout.print(types)
+
+
+@app.command("eval")
+def eval_command(
+    run: Annotated[Path, typer.Argument(help="A run directory written by `trajflow train`.")],
+    data: Annotated[Optional[Path], typer.Option(help="Dataset to evaluate on (default: the run's).")] = None,
+    samples: Annotated[int, typer.Option(help="Futures drawn per test problem.")] = 100,
+    k: Annotated[int, typer.Option(help="Draws used by minADE_K / minFDE_K.")] = 20,
+    workers: Annotated[Optional[int], typer.Option(help="Processes for the ROME fits (default: all cores).")] = None,
+    metric: Annotated[Optional[list[str]], typer.Option(
+        "--metric", help="Metric to compute (repeatable; default: all of min_ade, min_fde, min_ade_joint, "
+                         "min_fde_joint, nll, nll_joint, jsd).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the sampling and the ROME fits.")] = 0,
+    steps: Annotated[Optional[int], typer.Option(help="Predicted steps (default: the dataset's horizon).")] = None,
+    max_pooled: Annotated[Optional[int], typer.Option(
+        help="Cap on pooled predictions per identical-input group for ROME (default: all).")] = None,
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    force: Annotated[bool, typer.Option(help="Evaluate even on data other than the run was trained on.")] = False,
+    quiet: Quiet = False,
+) -> None:
+    """Draw samples for the test problems of the run's fold and compute minADE/minFDE, NLL and JSD."""
+    from ..metrics import METRIC_NAMES
+    from ..stages.evaluate import EvalOptions, aggregate_metrics, evaluate
+
+    with user_errors():
+        options = EvalOptions(samples=samples, k=k, workers=workers, seed=seed, steps=steps, max_pooled=max_pooled,
+                              metrics=tuple(metric) if metric else METRIC_NAMES)
+        out = evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet)
+    if not quiet:
+        table = Table(title=f"{run}: test metrics (mean)")
+        table.add_column("metric")
+        table.add_column("value", justify="right")
+        for name, value in aggregate_metrics(out).items():
+            table.add_row(name, f"{value:.4f}")
+        stdout.print(table)
+        stdout.print(f"wrote {out}")
+
+
+@app.command("experiment")
+def experiment_command(
+    config: Annotated[Path, typer.Argument(help="Experiment config (TOML): data, models, folds, seeds, budgets.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Experiment directory (re-running resumes it).")],
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    quiet: Quiet = False,
+) -> None:
+    """Train and evaluate every model x fold x seed of a protocol; resumable, metrics collected in OUT."""
+    from ..stages.experiment import run_experiment
+
+    with user_errors():
+        result = run_experiment(config, out, device=device, quiet=quiet)
+    if not quiet:
+        stdout.print(f"experiment done: {result} (make a report with `trajflow report {result} -o REPORT`)")
+
+
+@app.command("demo")
+def demo_command(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Where data, runs and the report go.")] = Path(
+        "trajflow-demo"),
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    quiet: Quiet = False,
+) -> None:
+    """The whole pipeline on built-in data: synthetic bimodal -> TrajFlow + baselines -> metrics -> report."""
+    from ..stages.demo import demo
+
+    with user_errors():
+        report_dir = demo(out, device=device, quiet=quiet)
+    stdout.print(f"report: {report_dir / 'report.html'} (and report.md)")
+
+
+app.command("train")(train_command)
+app.command("report")(report_command)
+ingest_app.command("forking-paths")(ingest_forking_paths_command)
+ingest_app.command("round")(ingest_round_command)
+ingest_app.command("nuscenes")(ingest_nuscenes_command)
+augment_app.command("forking")(augment_forking_command)
+augment_app.command("scale-rotate")(augment_scale_rotate_command)
 
 
 def main() -> None:

@@ -1,0 +1,140 @@
+"""`trajflow eval` and `trajflow experiment` end to end on tiny trained runs, plus the report over them."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import polars as pl
+import pytest
+from typer.testing import CliRunner
+
+from trajflow_pipeline.cli.app import app
+from trajflow_pipeline.errors import TrajflowError, UsageError
+from trajflow_pipeline.metrics import METRIC_NAMES
+from trajflow_pipeline.stages.evaluate import EvalOptions, aggregate_metrics, evaluate
+from trajflow_pipeline.stages.experiment import load_experiment, run_experiment
+from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+from trajflow_pipeline.stages.report import report
+from trajflow_pipeline.stages.train import train
+
+TINY = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", "train.flow_max_epochs=2", "train.flow_min_epochs=1",
+        "model.flow_layers=2", "model.flow_hidden=[16, 16]"]
+FAST = EvalOptions(samples=12, k=5, workers=1)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return ingest_synthetic_bimodal(tmp_path_factory.mktemp("data") / "bimodal", samples=120, seed=5, quiet=True)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run = tmp_path_factory.mktemp("runs") / "trajflow-s0"
+    return train(tiny_data, run, model="trajflow", overrides=TINY, seed=0, quiet=True)
+
+
+def test_eval_writes_predictions_ground_truth_and_every_metric(tiny_run: Path) -> None:
+    out = evaluate(tiny_run, options=FAST, quiet=True)
+    info = json.loads((out / "eval.json").read_text())
+    assert info["model"] == "trajflow" and info["dataset"] == "synthetic_bimodal" and info["problems"] == 120
+    assert info["log_lik_label"] == "latent" and info["samples"] == 12 and info["k"] == 5
+    predictions = pl.read_parquet(out / "predictions.parquet")
+    assert predictions.columns == ["sample_id", "draw", "step", "x", "y", "log_lik"]
+    assert predictions.height == 120 * 12 * 14
+    truth = pl.read_parquet(out / "ground_truth.parquet")
+    assert truth.height == 120 * (10 + 14) and truth.get_column("step").min() == -9
+    metrics = pl.read_parquet(out / "metrics.parquet")
+    aggregates = metrics.filter(pl.col("aggregate"))
+    assert sorted(aggregates.get_column("metric")) == sorted(METRIC_NAMES)
+    assert set(metrics.get_column("run")) == {"trajflow-s0"} and set(metrics.get_column("seed")) == {0}
+    per_agent = metrics.filter((pl.col("metric") == "min_ade") & ~pl.col("aggregate"))
+    assert per_agent.height == 120 and per_agent.get_column("sample_id").null_count() == 0
+    values = aggregate_metrics(out)
+    assert 0 <= values["jsd"] <= 1 and values["min_ade"] > 0
+
+
+def test_eval_is_deterministic_and_parallel_equals_serial(tiny_run: Path, tmp_path: Path) -> None:
+    first = evaluate(tiny_run, options=FAST, quiet=True)
+    before = pl.read_parquet(first / "metrics.parquet"), pl.read_parquet(first / "predictions.parquet")
+    again = evaluate(tiny_run, options=EvalOptions(samples=12, k=5, workers=2), quiet=True)
+    assert pl.read_parquet(again / "predictions.parquet").equals(before[1])
+    assert pl.read_parquet(again / "metrics.parquet").equals(before[0])
+    other_seed = evaluate(tiny_run, options=EvalOptions(samples=12, k=5, workers=1, seed=1), quiet=True)
+    assert not pl.read_parquet(other_seed / "predictions.parquet").equals(before[1])
+
+
+def test_eval_bad_inputs(tiny_run: Path, tiny_data: Path, tmp_path: Path) -> None:
+    with pytest.raises(TrajflowError, match="not a trajflow run"):
+        evaluate(tmp_path, options=FAST, quiet=True)
+    unfinished = tmp_path / "unfinished"
+    shutil.copytree(tiny_run, unfinished, ignore=shutil.ignore_patterns("final", "eval"))
+    info = json.loads((unfinished / "run.json").read_text())
+    (unfinished / "run.json").write_text(json.dumps({**info, "status": "training"}))
+    with pytest.raises(TrajflowError, match="no final model"):
+        evaluate(unfinished, options=FAST, quiet=True)
+    with pytest.raises(UsageError, match="unknown metric"):
+        evaluate(tiny_run, options=EvalOptions(metrics=("min_ade", "accuracy")), quiet=True)
+    with pytest.raises(UsageError, match="--k must be between 1 and --samples"):
+        evaluate(tiny_run, options=EvalOptions(samples=5, k=20), quiet=True)
+    other = ingest_synthetic_bimodal(tmp_path / "other", samples=60, seed=9, quiet=True)
+    with pytest.raises(TrajflowError, match="does not match the run's training data"):
+        evaluate(tiny_run, data=other, options=FAST, quiet=True)
+    forced = evaluate(tiny_run, data=other, options=FAST, force=True, quiet=True)
+    assert json.loads((forced / "eval.json").read_text())["problems"] == 60
+
+
+def test_eval_cli_and_report(tiny_run: Path, tmp_path: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(app, ["eval", str(tiny_run), "--samples", "12", "--k", "5", "--workers", "1", "-q"])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["eval", str(tiny_run), "--metric", "nope", "-q"])
+    assert result.exit_code == 2 and "unknown metric" in result.output
+    out = report([tiny_run], tmp_path / "report", quiet=True)
+    markdown = (out / "report.md").read_text()
+    for column in ("minADE", "minFDE", "NLL", "JSD"):
+        assert column in markdown
+    pngs = list((out / "figures").glob("*.png"))
+    assert pngs and all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 1000 for p in pngs)
+    assert "data:image/png;base64," in (out / "report.html").read_text()
+
+
+def test_experiment_runs_every_model_and_resumes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config = tmp_path / "exp.toml"
+    config.write_text(f'''
+name = "tiny"
+[data]
+path = "{(tmp_path / 'data').as_posix()}"
+ingest = "synthetic-bimodal"
+samples = 80
+[protocol]
+models = ["cv", "trajflow-no-ae"]
+seeds = [0, 1]
+[train]
+set = {json.dumps(TINY[2:])}
+[eval]
+samples = 10
+k = 5
+workers = 1
+''')
+    assert load_experiment(config).models == ("cv", "trajflow-no-ae")
+    out = run_experiment(config, tmp_path / "exp", quiet=True)
+    index = json.loads((out / "experiment.json").read_text())
+    assert index["runs"] == ["runs/cv-all-s0", "runs/cv-all-s1", "runs/trajflow-no-ae-all-s0",
+                             "runs/trajflow-no-ae-all-s1"]
+    metrics = pl.read_parquet(out / "metrics.parquet")
+    assert set(metrics.get_column("model")) == {"cv", "trajflow-no-ae"}
+    # an interrupted experiment: one run lost its evaluation; a re-run redoes only that, training nothing
+    shutil.rmtree(out / "runs" / "cv-all-s1" / "eval")
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("finished runs must not be trained again")
+
+    monkeypatch.setattr("trajflow_pipeline.stages.train.train", no_training)
+    run_experiment(config, tmp_path / "exp", quiet=True)
+    assert (out / "runs" / "cv-all-s1" / "eval" / "metrics.parquet").exists()
+    bad = tmp_path / "bad.toml"
+    bad.write_text(config.read_text().replace("[eval]", "[eval]\nbogus = 1"))
+    with pytest.raises(UsageError, match="unknown key"):
+        load_experiment(bad)

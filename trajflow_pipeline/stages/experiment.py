@@ -1,0 +1,194 @@
+"""`trajflow experiment CONFIG -o EXP`: train + eval every (model, fold, seed) of a dataset protocol, resumably.
+
+An experiment config is TOML::
+
+    name = "synthetic_bimodal_quick"
+    [data]
+    path = "data/synthetic_bimodal"      # dataset directory (relative paths: to the current directory)
+    ingest = "synthetic-bimodal"         # optional: how to create it when missing (synthetic-bimodal, eth-ucy)
+    raw = "../shared/data/eth_ucy"       # raw input of that ingest, when it needs one
+    samples = 3000                       # options of that ingest (synthetic-bimodal: samples, seed)
+    [protocol]
+    models = ["trajflow", "trajflow-no-ae", "flomo", "cv"]
+    folds = "all"                        # "all", a list of folds, or omitted for datasets without folds
+    seeds = [0, 1, 2]
+    [train]
+    set = ["train.flow_max_epochs=20"]   # `--set` overrides for every model
+    [models.trajflow]
+    set = ["train.ae_max_epochs=30"]     # extra overrides for one model
+    [eval]
+    samples = 100
+    k = 20
+
+Runs land in ``EXP/runs/<model>-<fold>-s<seed>/``. Re-running the same command skips finished runs and resumes an
+interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work.
+``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from ..data import list_folds
+from ..errors import TrajflowError, UsageError
+from ..schemas import open_dataset
+from ..util.atomic import atomic_write_text
+from ..util.progress import console
+from .evaluate import EVAL_DIR, EvalOptions, evaluate
+
+INGESTS = ("synthetic-bimodal", "eth-ucy")
+_TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """A parsed experiment config: which data, which runs, which overrides, how to evaluate."""
+
+    name: str
+    data_path: Path
+    ingest: str | None = None
+    ingest_options: dict[str, Any] = field(default_factory=dict)
+    models: tuple[str, ...] = ("trajflow",)
+    folds: tuple[str, ...] | str | None = None
+    seeds: tuple[int, ...] = (0,)
+    train_overrides: tuple[str, ...] = ()
+    model_overrides: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    eval_options: EvalOptions = EvalOptions()
+    source: dict[str, Any] = field(default_factory=dict)
+
+
+def _unknown(section: dict[str, Any], allowed: set[str], where: str, path: Path) -> None:
+    extra = sorted(set(section) - allowed)
+    if extra:
+        raise UsageError(f"{path}: unknown key(s) {', '.join(extra)} in {where}; allowed: {', '.join(sorted(allowed))}")
+
+
+def load_experiment(path: str | Path) -> ExperimentConfig:
+    """Read and check an experiment config file (unknown keys are errors that name them)."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{path}: experiment config not found") from None
+    except tomllib.TOMLDecodeError as error:
+        raise UsageError(f"{path}: not valid TOML ({error})") from None
+    _unknown(raw, _TOP_KEYS, "the top level", path)
+    data, protocol = raw.get("data", {}), raw.get("protocol", {})
+    _unknown(protocol, {"models", "folds", "seeds"}, "[protocol]", path)
+    _unknown(raw.get("train", {}), {"set"}, "[train]", path)
+    _unknown(raw.get("eval", {}), {"samples", "k", "workers", "batch_size", "metrics", "seed", "max_pooled"}, "[eval]", path)
+    if "path" not in data:
+        raise UsageError(f"{path}: [data] needs a path")
+    ingest = data.get("ingest")
+    if ingest is not None and ingest not in INGESTS:
+        raise UsageError(f"{path}: [data] ingest must be one of {', '.join(INGESTS)}, got {ingest!r}")
+    folds = protocol.get("folds")
+    eval_section = dict(raw.get("eval", {}))
+    if "metrics" in eval_section:
+        eval_section["metrics"] = tuple(eval_section["metrics"])
+    options = EvalOptions(**eval_section)
+    options.validate()
+    return ExperimentConfig(
+        name=str(raw.get("name", path.stem)),
+        data_path=Path(data["path"]),
+        ingest=ingest,
+        ingest_options={k: v for k, v in data.items() if k not in ("path", "ingest")},
+        models=tuple(protocol.get("models", ("trajflow",))),
+        folds=folds if folds is None or isinstance(folds, str) else tuple(str(f) for f in folds),
+        seeds=tuple(int(s) for s in protocol.get("seeds", (0,))),
+        train_overrides=tuple(raw.get("train", {}).get("set", ())),
+        model_overrides={name: tuple(section.get("set", ())) for name, section in raw.get("models", {}).items()},
+        eval_options=options,
+        source=raw,
+    )
+
+
+def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:
+    """The dataset directory, ingested first when missing and the config says how."""
+    if (config.data_path / "dataset.json").exists():
+        return config.data_path
+    if config.ingest is None:
+        raise TrajflowError(f"{config.data_path}: dataset not found and the experiment config names no ingest")
+    options = dict(config.ingest_options)
+    if config.ingest == "synthetic-bimodal":
+        from .ingest_synthetic import ingest_synthetic_bimodal
+
+        return ingest_synthetic_bimodal(config.data_path, samples=int(options.get("samples", 3000)),
+                                        seed=int(options.get("seed", 0)), quiet=quiet)
+    from .ingest_eth_ucy import ingest_eth_ucy
+
+    if "raw" not in options:
+        raise UsageError("[data] ingest = 'eth-ucy' needs raw = the raw ETH/UCY folder")
+    return ingest_eth_ucy(Path(options["raw"]), config.data_path, quiet=quiet)
+
+
+def _folds(config: ExperimentConfig, data: Path) -> list[str | None]:
+    available = list_folds(data)
+    if not available:
+        if config.folds not in (None, "all"):
+            raise UsageError(f"dataset {data} has no folds, but the experiment lists folds {config.folds}")
+        return [None]
+    if config.folds in (None, "all"):
+        return list(available)
+    unknown = [f for f in config.folds if f not in available]
+    if unknown:
+        raise UsageError(f"unknown fold(s) {', '.join(unknown)}; the dataset has {', '.join(available)}")
+    return list(config.folds)
+
+
+def run_name(model: str, fold: str | None, seed: int) -> str:
+    """Directory name of one run of an experiment."""
+    return f"{model}-{fold or 'all'}-s{seed}"
+
+
+def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False) -> Path:
+    """Train and evaluate every run of the experiment into `out` (resuming what an earlier call left)."""
+    from .train import FINAL_DIR, train
+
+    config = load_experiment(config_path)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = _ensure_data(config, quiet)
+    open_dataset(data)
+    folds = _folds(config, data)
+    plan = [(m, f, s) for m in config.models for f in folds for s in config.seeds]
+    atomic_write_text(out / "config.toml", Path(config_path).read_text())
+    runs: list[str] = []
+    for index, (model, fold, seed) in enumerate(plan, start=1):
+        name = run_name(model, fold, seed)
+        run_dir = out / "runs" / name
+        runs.append(f"runs/{name}")
+        if (run_dir / EVAL_DIR / "metrics.parquet").exists():
+            if not quiet:
+                console.print(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
+            continue
+        if not quiet:
+            console.print(f"[bold]{index}/{len(plan)} {name}[/]")
+        overrides = [*config.train_overrides, *config.model_overrides.get(model, ())]
+        if not (run_dir / FINAL_DIR).exists():
+            train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
+                  device=device, resume=run_dir.exists(), quiet=quiet)
+        evaluate(run_dir, data=data, options=config.eval_options, device=device, quiet=quiet)
+        _write_index(out, config, data, runs)
+    _write_index(out, config, data, runs)
+    return out
+
+
+def _write_index(out: Path, config: ExperimentConfig, data: Path, runs: list[str]) -> None:
+    """experiment.json and the concatenated metrics of the runs finished so far."""
+    finished = [r for r in runs if (out / r / EVAL_DIR / "metrics.parquet").exists()]
+    atomic_write_text(out / "experiment.json", json.dumps(
+        {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs,
+         "config": config.source}, indent=2, default=str) + "\n")
+    if finished:
+        metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
+                            how="vertical_relaxed")
+        tmp = out / ".metrics.parquet.tmp"
+        metrics.write_parquet(tmp)
+        tmp.replace(out / "metrics.parquet")
