@@ -15,7 +15,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from trajflow_pipeline.stages.ingest_eth_ucy import SEQUENCES, ingest_eth_ucy
