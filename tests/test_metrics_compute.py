@@ -1,0 +1,79 @@
+"""compute_metrics: the long table, its aggregates, metric-name checking, and serial == parallel."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+import pytest
+
+from trajflow_pipeline.errors import UsageError
+from trajflow_pipeline.metrics import (METRIC_NAMES, RomeTask, compute_metrics, fit_and_score, min_ade,
+                                       nll_indep, run_rome_tasks)
+
+
+def _case(seed: int = 0, n_agents: int = 6, n_samples: int = 25, n_steps: int = 4):
+    rng = np.random.default_rng(seed)
+    gt = rng.normal(size=(n_agents, n_steps, 2)).cumsum(axis=1)
+    pred = gt[:, None] + rng.normal(scale=0.4, size=(n_agents, n_samples, n_steps, 2))
+    joint_key = np.array([0, 0, 1, 2, 2, 2])[:n_agents]
+    group_id = np.array([5, 5, 5, 7, 7, 9])[:n_agents]
+    return pred, gt, joint_key, group_id
+
+
+def test_long_table_schema_rows_and_aggregates() -> None:
+    pred, gt, joint_key, group_id = _case()
+    table = compute_metrics(pred, gt, joint_key=joint_key, group_id=group_id, k=10, workers=1, quiet=True)
+    assert table.schema == {"metric": pl.Utf8, "value": pl.Float64, "agent_index": pl.Int64,
+                            "group_key": pl.Int64, "aggregate": pl.Boolean}
+    counts = dict(table.group_by("metric").len().iter_rows())
+    # per agent + 1 aggregate; joint: 3 groups + 1; jsd: groups 5 and 7 (>= 2 agents) + 1
+    assert counts == {"min_ade": 7, "min_fde": 7, "min_ade_joint": 4, "min_fde_joint": 4, "nll": 7,
+                      "nll_joint": 4, "jsd": 3}
+    assert table["metric"].unique(maintain_order=True).to_list() == list(METRIC_NAMES)
+    for metric in METRIC_NAMES:
+        rows = table.filter(pl.col("metric") == metric)
+        units, agg = rows.filter(~pl.col("aggregate")), rows.filter(pl.col("aggregate"))
+        assert agg.height == 1 and agg["agent_index"].is_null().all() and agg["group_key"].is_null().all()
+        assert agg["value"][0] == pytest.approx(units["value"].mean())
+    ade = table.filter((pl.col("metric") == "min_ade") & ~pl.col("aggregate"))
+    np.testing.assert_allclose(ade["value"].to_numpy(), min_ade(pred, gt, k=10))
+    np.testing.assert_array_equal(ade["agent_index"].to_numpy(), np.arange(6))
+    joint = table.filter((pl.col("metric") == "nll_joint") & ~pl.col("aggregate"))
+    assert joint["group_key"].to_list() == [0, 1, 2] and joint["agent_index"].to_list() == [0, 2, 3]
+    nll = table.filter((pl.col("metric") == "nll") & ~pl.col("aggregate"))["value"].to_numpy()
+    np.testing.assert_allclose(nll, nll_indep(pred, gt, group_id=group_id, workers=1, quiet=True))
+    assert joint["value"][1] == nll[2]  # singleton joint group reuses the indep NLL
+    jsd_rows = table.filter((pl.col("metric") == "jsd") & ~pl.col("aggregate"))
+    assert jsd_rows["group_key"].to_list() == [5, 7] and jsd_rows["agent_index"].to_list() == [0, 3]
+    assert ((jsd_rows["value"] >= 0) & (jsd_rows["value"] <= 1)).all()
+
+
+def test_t_eval_and_subset_of_metrics() -> None:
+    pred, gt, _, _ = _case()
+    table = compute_metrics(pred, gt, metrics=["min_fde", "min_ade"], k=5, t_eval=2, quiet=True)
+    assert table["metric"].unique(maintain_order=True).to_list() == ["min_ade", "min_fde"]
+    expected = min_ade(pred[:, :, :2], gt[:, :2], k=5)
+    np.testing.assert_allclose(table.filter(~pl.col("aggregate"))["value"][:6].to_numpy(), expected)
+
+
+def test_unknown_metric_lists_the_valid_ones() -> None:
+    pred, gt, _, _ = _case()
+    with pytest.raises(UsageError, match=r"unknown metric\(s\) 'min_ad'.*valid: min_ade, min_fde"):
+        compute_metrics(pred, gt, metrics=["min_ade", "min_ad"], quiet=True)
+    with pytest.raises(UsageError, match="jsd needs a group_id"):
+        compute_metrics(pred, gt, metrics=["jsd"], quiet=True)
+    with pytest.raises(UsageError, match="workers"):
+        compute_metrics(pred, gt, metrics=["nll"], workers=0, quiet=True)
+
+
+def test_parallel_equals_serial() -> None:
+    pred, gt, joint_key, group_id = _case(seed=1, n_samples=20)
+    kwargs = dict(joint_key=joint_key, group_id=group_id, k=10, quiet=True)
+    serial = compute_metrics(pred, gt, workers=1, **kwargs)
+    parallel = compute_metrics(pred, gt, workers=2, **kwargs)
+    assert serial.equals(parallel)  # bit-identical, not merely close
+    tasks = [RomeTask(fit=pred[a].reshape(20, -1), queries=(gt[a].reshape(1, -1),), label=f"agent {a}")
+             for a in range(pred.shape[0])]
+    results = run_rome_tasks(tasks, workers=2, quiet=True, base_seed=3)
+    for index, task in enumerate(tasks):  # in task order, each seeded from its own index
+        np.testing.assert_array_equal(results[index][0], fit_and_score(task, 3 + index)[0])

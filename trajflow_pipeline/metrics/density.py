@@ -1,0 +1,251 @@
+"""NLL (indep and joint) and JSD from ROME density estimates of drawn samples (paper section IV-B).
+
+All densities are over flattened future positions in metres, x0, y0, x1, y1, ... of the first `t_eval`
+steps (dimension 2T per agent; 2T per agent times the number of agents for a joint density), and all logs
+are natural, so NLL is in nats of that 2T- (or 2nT-) dimensional density.
+
+How each number is made (matching the reference benchmarking framework of Schumann et al. in numbers):
+  * NLL indep, agent a: -log P_a(gt_a), P_a a ROME density of the predicted samples for a's input.
+    Without `group_id` (or with `pool_groups=False`) P_a is fitted on agent a's own S samples. With
+    `group_id`, the agents of a group share their input, so the model's predictive distribution is the same
+    for all of them and P is fitted on the group's pooled predictions (a better estimate of the same
+    density) — this is what the reference does; for groups of one agent both are the same fit.
+    The aggregate is the mean over agents.
+  * NLL joint, group G of `joint_key`: -log P_G(gt_G), P_G a ROME density fitted on the S joint samples
+    (the agents' draws concatenated in ascending agent order: dimension n_G * 2T); the aggregate is the mean
+    over groups. For a group of one agent the joint density is the indep one, so its value is reused
+    (no second fit). Joint groups are not pooled across identical inputs.
+  * JSD, group g of `group_id` with >= 2 agents: Q = ROME on the group's ground-truth futures (the set of
+    gts is the ground-truth distribution), P = the group's pooled predicted density (as for NLL), and the
+    Monte-Carlo estimator of `divergence.jsd_from_log_densities` on the gts and the pooled predictions.
+    Groups of one agent have no ground-truth distribution and get no JSD row. The aggregate is the mean
+    over groups.
+  * Large pooled sets follow the reference's scheme: when a group pools more predictions than
+    max(n_gt, 5 S, 2500), they are shuffled (seeded) and split into chunks of that size, one ROME fit per
+    chunk, and P is the average of the chunk densities (left-over points are scored but not fitted).
+    `max_pooled` caps the pooled predictions per group (seeded random subset) to bound the cost; the
+    default None uses all, like the reference.
+  * ROME's log-densities are finite even far from every sample (its KDE works in log space), so no floor
+    or clipping is applied to NLL, like the reference; a single far-off ground truth can therefore dominate
+    an average, which is the metric's known behaviour, not an artefact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import logsumexp
+
+from trajflow_pipeline.errors import DataError, UsageError
+from trajflow_pipeline.metrics.divergence import jsd_from_log_densities
+from trajflow_pipeline.metrics.inputs import Groups, check_trajectories, flatten_futures, group_agents
+from trajflow_pipeline.metrics.parallel import RomeTask, run_rome_tasks
+
+#: Smallest chunk the reference uses for a pooled predicted density (points per ROME fit).
+REFERENCE_MIN_CHUNK = 2500
+#: The reference's chunk is also at least this many times the number of samples per agent.
+REFERENCE_SAMPLES_FACTOR = 5
+
+
+@dataclass
+class DensityResults:
+    """Per-agent and per-group density metrics; a field is None when that metric was not requested."""
+
+    nll: np.ndarray | None = None                 # (A,) per agent
+    nll_joint_keys: np.ndarray | None = None      # (G,) joint_key values, ascending
+    nll_joint: np.ndarray | None = None           # (G,)
+    jsd_keys: np.ndarray | None = None            # (H,) group_id values of groups with >= 2 agents
+    jsd: np.ndarray | None = None                 # (H,)
+
+
+@dataclass
+class _Plan:
+    """ROME tasks to run and, for each quantity, the task indices whose results make it."""
+
+    tasks: list[RomeTask] = field(default_factory=list)
+    agent_fit: dict[int, int] = field(default_factory=dict)          # agent -> task (own samples)
+    pooled_fits: dict[int, list[int]] = field(default_factory=dict)  # group -> chunk tasks
+    pooled_mc: dict[int, np.ndarray] = field(default_factory=dict)   # group -> MC prediction points
+    gt_fit: dict[int, int] = field(default_factory=dict)             # group -> task (ground truths)
+    joint_fit: dict[int, int] = field(default_factory=dict)          # joint group -> task
+    want_indep: bool = False  # per-agent NLL needed (for "nll" or singleton joint groups)
+    pooled: bool = False      # per-agent densities come from identical-input groups' pooled fits
+
+    def add(self, fit: np.ndarray, queries: tuple[np.ndarray, ...], label: str) -> int:
+        """Append a task after checking that ROME can fit `fit`; return its index."""
+        if fit.shape[0] < 2 or not np.ptp(fit, axis=0).max() > 0.0:
+            raise DataError(f"cannot estimate a density for {label}: it needs at least 2 distinct samples, "
+                            f"got {fit.shape[0]} sample(s), all identical")
+        self.tasks.append(RomeTask(fit=fit, queries=queries, label=label))
+        return len(self.tasks) - 1
+
+
+def reference_chunk_size(n_gt: int, n_samples: int, n_pooled: int) -> int:
+    """Points per ROME fit of a pooled predicted density in the reference: max(n_gt, 5 S, 2500), at most all."""
+    return min(max(n_gt, REFERENCE_SAMPLES_FACTOR * n_samples, REFERENCE_MIN_CHUNK), n_pooled)
+
+
+def _pooled_points(pred_flat: np.ndarray, members: np.ndarray, group_key: int, max_pooled: int | None,
+                   seed: int) -> tuple[np.ndarray, np.random.Generator]:
+    """The group's pooled predictions (n_members * S, D), subsampled to `max_pooled` with a group-seeded RNG."""
+    points = pred_flat[members].reshape(-1, pred_flat.shape[-1])
+    rng = np.random.default_rng([seed, int(group_key) % 2**64])
+    if max_pooled is not None and points.shape[0] > max_pooled:
+        points = points[np.sort(rng.permutation(points.shape[0])[:max_pooled])]
+    return points, rng
+
+
+def _plan_pooled(plan: _Plan, pred_flat: np.ndarray, gt_flat: np.ndarray, groups: Groups, g: int,
+                 with_mc: bool, max_pooled: int | None, seed: int) -> None:
+    """Tasks for group g's pooled predicted density: chunk fits scored at the gts (and MC points if `with_mc`)."""
+    members, key = groups.members[g], groups.keys[g]
+    points, rng = _pooled_points(pred_flat, members, key, max_pooled, seed)
+    chunk = reference_chunk_size(members.size, pred_flat.shape[1], points.shape[0])
+    n_chunks = points.shape[0] // chunk
+    # One chunk holding every point: fit in data order; otherwise a seeded shuffle decides the chunks.
+    whole = n_chunks == 1 and chunk == points.shape[0]
+    order = np.arange(points.shape[0]) if whole else rng.permutation(points.shape[0])
+    queries = (gt_flat[members], points) if with_mc else (gt_flat[members],)
+    plan.pooled_fits[g] = [
+        plan.add(points[order[i * chunk:(i + 1) * chunk]], queries,
+                 f"predictions of group_id {key}" + (f" (chunk {i + 1}/{n_chunks})" if n_chunks > 1 else ""))
+        for i in range(n_chunks)
+    ]
+    if with_mc:
+        plan.pooled_mc[g] = points
+
+
+def _chunk_mean(results: list[tuple[np.ndarray, ...]], indices: list[int], query: int) -> np.ndarray:
+    """log of the mean over chunk fits of the density at query array `query` (log-mean-exp)."""
+    stacked = np.stack([results[i][query] for i in indices])
+    return logsumexp(stacked, axis=0) - np.log(len(indices))
+
+
+def _check_options(metrics: set[str], max_pooled: int | None, seed: int) -> None:
+    """UsageError for anything but {"nll", "nll_joint", "jsd"}, a max_pooled below 2, or a negative seed."""
+    unknown = set(metrics) - {"nll", "nll_joint", "jsd"}
+    if unknown:
+        raise UsageError(f"not a density metric: {sorted(unknown)}; valid: nll, nll_joint, jsd")
+    if max_pooled is not None and (isinstance(max_pooled, bool) or not isinstance(max_pooled, (int, np.integer))
+                                   or max_pooled < 2):
+        raise UsageError(f"max_pooled must be an integer >= 2 or None; got {max_pooled!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise UsageError(f"seed must be a non-negative integer; got {seed!r}")
+
+
+def _build_plan(pred_flat: np.ndarray, gt_flat: np.ndarray, metrics: set[str], id_groups: Groups,
+                joint_groups: Groups, pooled: bool, max_pooled: int | None, seed: int) -> _Plan:
+    """Every ROME fit the requested metrics need, each made once (see `density_metrics`)."""
+    plan = _Plan()
+    n_agents, n_samples = pred_flat.shape[:2]
+    plan.want_indep = "nll" in metrics or ("nll_joint" in metrics and bool((joint_groups.counts == 1).any()))
+    plan.pooled = pooled
+    jsd_groups = np.flatnonzero(id_groups.counts >= 2).tolist() if "jsd" in metrics else []
+    if plan.want_indep and not pooled:
+        for a in range(n_agents):
+            plan.agent_fit[a] = plan.add(pred_flat[a], (gt_flat[a:a + 1],), f"the samples of agent {a}")
+    pooled_groups = set(jsd_groups) | (set(range(id_groups.keys.size)) if plan.want_indep and pooled else set())
+    for g in sorted(pooled_groups):
+        _plan_pooled(plan, pred_flat, gt_flat, id_groups, g, g in jsd_groups, max_pooled, seed)
+    for g in jsd_groups:
+        members = id_groups.members[g]
+        plan.gt_fit[g] = plan.add(gt_flat[members], (gt_flat[members], plan.pooled_mc[g]),
+                                  f"the ground truths of group_id {id_groups.keys[g]}")
+    if "nll_joint" in metrics:
+        for j in np.flatnonzero(joint_groups.counts > 1):
+            members = joint_groups.members[j]
+            joint_samples = pred_flat[members].transpose(1, 0, 2).reshape(n_samples, -1)
+            plan.joint_fit[int(j)] = plan.add(joint_samples, (gt_flat[members].reshape(1, -1),),
+                                              f"the joint samples of joint_key {joint_groups.keys[j]}")
+    return plan
+
+
+def _log_p_at_gt(plan: _Plan, results: list[tuple[np.ndarray, ...]], id_groups: Groups, n_agents: int) -> np.ndarray:
+    """log P_a(gt_a) for every agent, from its own fit or its group's pooled (chunk-averaged) fit."""
+    if not plan.pooled:
+        return np.array([results[plan.agent_fit[a]][0][0] for a in range(n_agents)])
+    log_p = np.empty(n_agents)
+    for g in range(id_groups.keys.size):
+        log_p[id_groups.members[g]] = _chunk_mean(results, plan.pooled_fits[g], 0)
+    return log_p
+
+
+def _group_jsd(plan: _Plan, results: list[tuple[np.ndarray, ...]], g: int) -> float:
+    """JSD of group g: Q (gt fit) and P (pooled prediction fits) at the group's gts and its MC predictions."""
+    gt_fit = results[plan.gt_fit[g]]
+    return jsd_from_log_densities(gt_fit[0], _chunk_mean(results, plan.pooled_fits[g], 0),
+                                  gt_fit[1], _chunk_mean(results, plan.pooled_fits[g], 1))
+
+
+def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], joint_key: np.ndarray | None = None,
+                    group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
+                    t_eval: int | None = None, workers: int | None = None, quiet: bool = False,
+                    seed: int = 0) -> DensityResults:
+    """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
+
+    Fits needed by several metrics are made once (the pooled predicted density serves NLL and JSD; a
+    singleton joint group reuses the indep NLL). `seed` only drives the subsampling / chunking of large
+    pooled sets and the per-task RNG seeds; results do not depend on `workers`.
+    """
+    _check_options(metrics, max_pooled, seed)
+    pred, gt = check_trajectories(pred, gt, t_eval)
+    n_agents = pred.shape[0]
+    pred_flat, gt_flat = flatten_futures(pred), flatten_futures(gt)  # (A, S, D), (A, D)
+    id_groups = group_agents(group_id, n_agents, "group_id")
+    joint_groups = group_agents(joint_key, n_agents, "joint_key")
+    plan = _build_plan(pred_flat, gt_flat, set(metrics), id_groups, joint_groups,
+                       pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed)
+
+    results = run_rome_tasks(plan.tasks, workers=workers, quiet=quiet, base_seed=seed)
+
+    out = DensityResults()
+    log_p_gt = _log_p_at_gt(plan, results, id_groups, n_agents) if plan.want_indep else None
+    if "nll" in metrics and log_p_gt is not None:
+        out.nll = -log_p_gt
+    if "nll_joint" in metrics:
+        values = np.empty(joint_groups.keys.size)
+        singles = np.flatnonzero(joint_groups.counts == 1)
+        if singles.size and log_p_gt is not None:
+            values[singles] = -log_p_gt[[joint_groups.members[j][0] for j in singles]]
+        for j, task in plan.joint_fit.items():
+            values[j] = -results[task][0][0]
+        out.nll_joint_keys, out.nll_joint = joint_groups.keys, values
+    if "jsd" in metrics:
+        groups = sorted(plan.gt_fit)
+        out.jsd_keys = id_groups.keys[groups].astype(np.int64)
+        out.jsd = np.array([_group_jsd(plan, results, g) for g in groups], dtype=np.float64)
+    return out
+
+
+def nll_indep(pred: np.ndarray, gt: np.ndarray, *, group_id: np.ndarray | None = None, pool_groups: bool = True,
+              max_pooled: int | None = None, t_eval: int | None = None, workers: int | None = None,
+              quiet: bool = False, seed: int = 0) -> np.ndarray:
+    """NLL of each agent's ground truth under the ROME density of its predictions, shape (A,) (see module doc)."""
+    result = density_metrics(pred, gt, metrics={"nll"}, group_id=group_id, pool_groups=pool_groups,
+                             max_pooled=max_pooled, t_eval=t_eval, workers=workers, quiet=quiet, seed=seed)
+    assert result.nll is not None
+    return result.nll
+
+
+def nll_joint(pred: np.ndarray, gt: np.ndarray, joint_key: np.ndarray | None, *, group_id: np.ndarray | None = None,
+              pool_groups: bool = True, max_pooled: int | None = None, t_eval: int | None = None,
+              workers: int | None = None, quiet: bool = False, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Joint NLL per group of `joint_key`: (group keys (G,), values (G,)) (see module doc)."""
+    result = density_metrics(pred, gt, metrics={"nll_joint"}, joint_key=joint_key, group_id=group_id,
+                             pool_groups=pool_groups, max_pooled=max_pooled, t_eval=t_eval, workers=workers,
+                             quiet=quiet, seed=seed)
+    assert result.nll_joint_keys is not None and result.nll_joint is not None
+    return result.nll_joint_keys, result.nll_joint
+
+
+def jsd(pred: np.ndarray, gt: np.ndarray, group_id: np.ndarray, *, max_pooled: int | None = None,
+        t_eval: int | None = None, workers: int | None = None, quiet: bool = False,
+        seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """JSD in [0, 1] per group of identical inputs with >= 2 agents: (group_id values (H,), values (H,))."""
+    if group_id is None:
+        raise UsageError("jsd needs group_id: the ground-truth distribution is the set of gts of a group")
+    result = density_metrics(pred, gt, metrics={"jsd"}, group_id=group_id, max_pooled=max_pooled,
+                             t_eval=t_eval, workers=workers, quiet=quiet, seed=seed)
+    assert result.jsd_keys is not None and result.jsd is not None
+    return result.jsd_keys, result.jsd
