@@ -37,6 +37,7 @@ import polars as pl
 
 from ..data import list_folds
 from ..errors import TrajflowError, UsageError
+from ..model.config import MODEL_NAMES, load_config
 from ..schemas import open_dataset
 from ..util.atomic import atomic_write_text
 from ..util.progress import console
@@ -94,7 +95,7 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
         eval_section["metrics"] = tuple(eval_section["metrics"])
     options = EvalOptions(**eval_section)
     options.validate()
-    return ExperimentConfig(
+    config = ExperimentConfig(
         name=str(raw.get("name", path.stem)),
         data_path=Path(data["path"]),
         ingest=ingest,
@@ -107,6 +108,21 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
         eval_options=options,
         source=raw,
     )
+    _check_models(config, path)
+    return config
+
+
+def _check_models(config: ExperimentConfig, path: Path) -> None:
+    """Models must exist and every override must name a real config key, before hours of training start."""
+    unknown = [m for m in (*config.models, *config.model_overrides) if m not in MODEL_NAMES]
+    if unknown:
+        raise UsageError(f"{path}: unknown model(s) {', '.join(unknown)}; choose from {', '.join(MODEL_NAMES)}")
+    for model in config.models:
+        try:
+            load_config(overrides=[*config.train_overrides, *config.model_overrides.get(model, ()),
+                                   f"model.name={model}"])
+        except UsageError as error:
+            raise UsageError(f"{path}: {error}") from None
 
 
 def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:

@@ -1,0 +1,60 @@
+"""The experiment configs in configs/paper: every one parses, names real models, keys and data; the synthetic
+quick variant runs end to end (on a smaller set and tinier budgets than it names) through to the report."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from trajflow_pipeline.model.config import MODEL_NAMES
+from trajflow_pipeline.stages.experiment import INGESTS, load_experiment, run_experiment
+from trajflow_pipeline.stages.report import report
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "paper"
+PAPER = sorted(p for p in CONFIGS.glob("*.toml") if not p.stem.endswith("_quick"))
+#: datasets the paper configs may point at, by the directory name they use
+KNOWN_DATA = {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths_augmented"}
+
+
+def test_every_paper_config_has_a_quick_variant() -> None:
+    assert {p.stem for p in PAPER} == {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths"}
+    for config in PAPER:
+        assert (CONFIGS / f"{config.stem}_quick.toml").exists(), config
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.toml")), ids=lambda p: p.stem)
+def test_config_parses_and_references_what_exists(path: Path) -> None:
+    config = load_experiment(path)
+    assert set(config.models) <= set(MODEL_NAMES) and "trajflow" in config.models and "cv" in config.models
+    assert config.data_path.name in KNOWN_DATA
+    assert config.ingest is None or config.ingest in INGESTS
+    if not path.stem.endswith("_quick"):
+        assert not config.train_overrides, "paper configs train with the paper's budgets (the defaults)"
+
+
+def test_paper_seed_and_fold_protocols() -> None:
+    assert len(load_experiment(CONFIGS / "synthetic_bimodal.toml").seeds) == 10
+    assert load_experiment(CONFIGS / "eth_ucy.toml").folds == "all"
+    assert len(load_experiment(CONFIGS / "forking_paths.toml").seeds) == 5
+    assert len(load_experiment(CONFIGS / "nuscenes.toml").seeds) == 5
+
+
+def test_synthetic_quick_runs_end_to_end(tmp_path: Path) -> None:
+    text = (CONFIGS / "synthetic_bimodal_quick.toml").read_text()
+    text = text.replace('path = "data/synthetic_bimodal"', f'path = "{(tmp_path / "data").as_posix()}"')
+    text = text.replace("samples = 3000", "samples = 100")
+    text = re.sub(r"\[train\]\nset = \[[^\]]*\]", '[train]\nset = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", '
+                  '"train.flow_max_epochs=2", "train.flow_min_epochs=1", "model.flow_layers=2"]', text)
+    text = text.replace("samples = 50", "samples = 10").replace("k = 20", "k = 5\nworkers = 1")
+    config = tmp_path / "quick.toml"
+    config.write_text(text)
+    experiment = run_experiment(config, tmp_path / "exp", quiet=True)
+    assert len(json.loads((experiment / "experiment.json").read_text())["runs"]) == 4
+    out = report([experiment], tmp_path / "report", quiet=True)
+    markdown = (out / "report.md").read_text()
+    for model in ("trajflow", "flomo", "cv"):
+        assert model.lower() in markdown.lower()
+    assert (out / "report.html").stat().st_size > 10_000
