@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -12,30 +11,16 @@ from typer.testing import CliRunner
 
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.cli.train_cmd import train_command
-from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.toy import bimodal_batch
-
-
-@dataclass
-class _Problems:
-    batch: SceneBatch
-    n_past: int
-    n_future: int
-    has_map: bool = False
-    dataset: str = "toy"
-    dt: float = 0.25
-    fingerprint: dict[str, str] = field(default_factory=lambda: {"dataset": "toy"})
-
-    def __len__(self) -> int:
-        return len(self.batch)
+from train_fakes import FakeProblems
 
 
 @pytest.fixture
 def app(monkeypatch: pytest.MonkeyPatch) -> typer.Typer:
-    def load_problems(dataset_dir: object, fold: str | None = None, split: str = "train") -> _Problems:
+    def load_problems(dataset_dir: object, fold: str | None = None, split: str = "train") -> FakeProblems:
         batch, _ = bimodal_batch(48 if split == "train" else 16, seed=0 if split == "train" else 1)
-        return _Problems(batch=batch, n_past=batch.n_past, n_future=batch.n_future)
+        return FakeProblems(batch=batch, n_past=batch.n_past, n_future=batch.n_future)
 
     monkeypatch.setattr(data_module, "load_problems", load_problems)
     application = typer.Typer()

@@ -5,39 +5,24 @@ from __future__ import annotations
 import json
 import os
 import socket
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 import torch.multiprocessing as mp
 
 from trajflow_pipeline import data as data_module
-from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.toy import bimodal_batch
+from train_fakes import FakeProblems
 
 OVERRIDES = ["train.ae_min_epochs=0", "train.flow_min_epochs=0", "train.ae_max_epochs=2",
              "train.flow_max_epochs=2", "train.ae_batch_size=16", "train.flow_batch_size=16", "model.flow_layers=4",
              "model.flow_hidden=[16, 16]", "model.gnn_layers=2"]
 
 
-@dataclass
-class _Problems:
-    batch: SceneBatch
-    n_past: int
-    n_future: int
-    has_map: bool = False
-    dataset: str = "toy"
-    dt: float = 0.25
-    fingerprint: dict[str, str] = field(default_factory=lambda: {"dataset": "toy"})
-
-    def __len__(self) -> int:
-        return len(self.batch)
-
-
-def _fake_load_problems(dataset_dir: object, fold: str | None = None, split: str = "train") -> _Problems:
+def _fake_load_problems(dataset_dir: object, fold: str | None = None, split: str = "train") -> FakeProblems:
     n = 61 if split == "train" else 13            # odd sizes: shards are padded to equal length
     batch, _ = bimodal_batch(n, seed=0 if split == "train" else 1, neighbours=2)
-    return _Problems(batch=batch, n_past=batch.n_past, n_future=batch.n_future)
+    return FakeProblems(batch=batch, n_past=batch.n_past, n_future=batch.n_future)
 
 
 def _worker(rank: int, world: int, port: int, out: str) -> None:

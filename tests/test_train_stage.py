@@ -7,7 +7,7 @@ independent of the dataset readers); the last ones train on a real synthetic-bim
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,31 +19,15 @@ import trajflow_pipeline
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
 from trajflow_pipeline.model import load_model, load_training_state
-from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.normalize import target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
+from train_fakes import FakeProblems
 from trajflow_pipeline.stages import train as train_stage
 from trajflow_pipeline.stages.train import train
 
 FAST = ["train.ae_min_epochs=0", "train.flow_min_epochs=0"]
 TINY_MODEL = ["model.flow_layers=4", "model.flow_hidden=[16, 16]", "model.gnn_layers=2"]
-
-
-@dataclass
-class FakeProblems:
-    """The attributes of `trajflow_pipeline.data.Problems` that training reads."""
-
-    batch: SceneBatch
-    n_past: int
-    n_future: int
-    has_map: bool = False
-    dataset: str = "toy"
-    dt: float = 0.25
-    fingerprint: dict[str, str] = field(default_factory=lambda: {"dataset": "toy", "manifest_sha256": "0" * 64})
-
-    def __len__(self) -> int:
-        return len(self.batch)
 
 
 def install_fake_data(monkeypatch: pytest.MonkeyPatch, n_train: int, n_val: int, *, neighbours: int = 2,
