@@ -315,3 +315,15 @@ def test_parquet_training_log_without_validation(tmp_path: Path) -> None:
     (run / "train_log.parquet").write_bytes(b"nope")
     with pytest.raises(DataError, match="train_log.parquet: unreadable training log"):
         report([run], tmp_path / "rep", quiet=True)
+
+
+def test_single_future_groups_skipped_by_jsd_are_counted(tmp_path: Path) -> None:
+    runs = [write_run(tmp_path / "runs", model="trajflow", dataset="forking_paths", fold=str(f), seed=0)
+            for f in range(2)]
+    for run, (evaluated, skipped) in zip(runs, [(5, 2), (4, 1)]):
+        info = json.loads((run / "eval" / "eval.json").read_text())
+        (run / "eval" / "eval.json").write_text(json.dumps({**info, "jsd_groups": evaluated,
+                                                            "jsd_groups_skipped": skipped}))
+    out = report(runs, tmp_path / "rep", quiet=True, figures=False)
+    assert ("JSD skipped 3 identical-input group(s) with a single ground-truth future (evaluated on 9 group(s)"
+            in (out / "report.md").read_text())

@@ -170,6 +170,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "data_fingerprint": problems.fingerprint, "config": run.config,
         "log_lik_label": model.log_lik_space,
+        **_group_counts(problems.group_id, options.metrics),
     }
     with atomic_directory(run.path / EVAL_DIR) as tmp:
         predictions_table(problems.sample_id, trajectories, log_lik).write_parquet(tmp / "predictions.parquet")
@@ -177,6 +178,14 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         metrics.write_parquet(tmp / "metrics.parquet")
         (tmp / "eval.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
     return run.path / EVAL_DIR
+
+
+def _group_counts(group_id: np.ndarray, metrics: tuple[str, ...]) -> dict[str, int]:
+    """How many identical-input groups JSD evaluates (two or more futures) and skips (a single future)."""
+    if "jsd" not in metrics:
+        return {}
+    _, sizes = np.unique(group_id, return_counts=True)
+    return {"jsd_groups": int((sizes >= 2).sum()), "jsd_groups_skipped": int((sizes < 2).sum())}
 
 
 def aggregate_metrics(eval_dir: str | Path) -> dict[str, float]:

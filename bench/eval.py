@@ -1,6 +1,6 @@
 """Benchmark the metric library: seconds per 1,000 evaluated agents, serial vs parallel ROME fits.
 
-    python bench/eval_metrics.py [--agents 100] [--samples 100] [--steps 12] [--workers 2] [--joint 0] [--rounds 3]
+    python bench/eval.py [--agents 100] [--samples 100] [--steps 12] [--workers 2] [--joint 0] [--rounds 3]
 
 Synthetic pedestrian-like problems (metres, 0.4 s steps): a ground-truth future per agent and `samples`
 predicted futures around it in three modes (straight, veer left, veer right) with noise growing over the
