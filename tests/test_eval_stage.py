@@ -84,6 +84,12 @@ def test_eval_bad_inputs(tiny_run: Path, tiny_data: Path, tmp_path: Path) -> Non
         evaluate(tiny_run, data=other, options=FAST, quiet=True)
     forced = evaluate(tiny_run, data=other, options=FAST, force=True, quiet=True)
     assert json.loads((forced / "eval.json").read_text())["problems"] == 60
+    folds_run = tmp_path / "folds_run"
+    shutil.copytree(tiny_run, folds_run, ignore=shutil.ignore_patterns("eval"))
+    info = json.loads((folds_run / "run.json").read_text())
+    (folds_run / "run.json").write_text(json.dumps({**info, "fold": "hotel"}))
+    with pytest.raises(UsageError, match="the run was trained on fold hotel of 'synthetic_bimodal'"):
+        evaluate(folds_run, data=other, options=FAST, force=True, quiet=True)
 
 
 def test_eval_cli_and_report(tiny_run: Path, tmp_path: Path) -> None:
@@ -139,3 +145,10 @@ workers = 1
     bad.write_text(config.read_text().replace("[eval]", "[eval]\nbogus = 1"))
     with pytest.raises(UsageError, match="unknown key"):
         load_experiment(bad)
+    bad.write_text(config.read_text().replace("samples = 80", "sampels = 80"))
+    with pytest.raises(UsageError, match=r"unknown key\(s\) sampels in \[data\]"):
+        load_experiment(bad)
+    changed = tmp_path / "changed.toml"
+    changed.write_text(config.read_text().replace("samples = 10", "samples = 11"))
+    with pytest.raises(UsageError, match="made with a different config"):
+        run_experiment(changed, out, quiet=True)

@@ -39,7 +39,7 @@ OutDir = Annotated[Path, typer.Option("--out", "-o", help="Dataset directory to 
 
 def _version(value: bool) -> None:
     if value:
-        console.print(f"trajflow {__version__}")
+        stdout.print(f"trajflow {__version__}")
         raise typer.Exit()
 
 
@@ -160,7 +160,8 @@ def eval_command(
     run: Annotated[Path, typer.Argument(help="A run directory written by `trajflow train`.")],
     data: Annotated[Optional[Path], typer.Option(help="Dataset to evaluate on (default: the run's).")] = None,
     samples: Annotated[int, typer.Option(help="Futures drawn per test problem.")] = 100,
-    k: Annotated[int, typer.Option(help="Draws used by minADE_K / minFDE_K.")] = 20,
+    k: Annotated[Optional[int], typer.Option(
+        help="Draws used by minADE_K / minFDE_K (default: 20, or --samples when fewer).")] = None,
     workers: Annotated[Optional[int], typer.Option(help="Processes for the ROME fits (default: all cores).")] = None,
     metric: Annotated[Optional[list[str]], typer.Option(
         "--metric", help="Metric to compute (repeatable; default: all of min_ade, min_fde, min_ade_joint, "
@@ -178,7 +179,7 @@ def eval_command(
     from ..stages.evaluate import EvalOptions, aggregate_metrics, evaluate
 
     with user_errors():
-        options = EvalOptions(samples=samples, k=k, workers=workers, seed=seed, steps=steps, max_pooled=max_pooled,
+        options = EvalOptions(samples=samples, k=min(20, samples) if k is None else k, workers=workers, seed=seed, steps=steps, max_pooled=max_pooled,
                               metrics=tuple(metric) if metric else METRIC_NAMES)
         out = evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet)
     if not quiet:

@@ -7,6 +7,8 @@ import os
 from collections.abc import Iterator
 from typing import Annotated
 
+import polars as pl
+import pyarrow as pa
 import typer
 from rich.markup import escape
 
@@ -35,6 +37,14 @@ def user_errors() -> Iterator[None]:
             raise
         console.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
         raise typer.Exit(error.exit_code) from None
+    except (OSError, pl.exceptions.PolarsError, pa.ArrowException) as error:
+        # files that exist but cannot be used (a path component that is a file, corrupt Parquet pages, ...)
+        if DEBUG["enabled"]:
+            raise
+        text = f"{error.filename}: {error.strerror}" if isinstance(error, OSError) and error.filename else error
+        console.print(f"[bold red]error:[/] {escape(str(text).splitlines()[0])}", highlight=False, soft_wrap=True)
+        raise typer.Exit(1) from None
     except KeyboardInterrupt:
-        console.print("[bold red]interrupted[/]: nothing was moved into place")
+        console.print("[bold red]interrupted[/]: outputs in progress were not moved into place "
+                      "(an interrupted training can be continued with --resume)")
         raise typer.Exit(130) from None

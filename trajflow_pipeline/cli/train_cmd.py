@@ -23,7 +23,7 @@ def train_command(
     model: Annotated[Optional[str], typer.Option(help=f"Model family: {', '.join(MODEL_NAMES)} "
                                                       "(default: the config's, else trajflow).")] = None,
     config: Annotated[Optional[Path], typer.Option("--config", metavar="CFG.toml",
-                                                   help="TOML file with [model] and [train] tables.")] = None,
+                                                   help="TOML file with \\[model] and \\[train] tables.")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="KEY=VALUE",
                                                       help="Override one config value, e.g. "
                                                            "train.flow_lr=3e-4 (repeatable).")] = None,

@@ -26,10 +26,11 @@ import polars as pl
 import torch
 
 from .. import __version__
-from ..data import Problems, load_problems
+from ..data import Problems, build_problems, select_samples
 from ..errors import TrajflowError, UsageError
 from ..metrics import METRIC_NAMES, check_metric_names, compute_metrics
 from ..model.models import TrajectoryModel
+from ..schemas import open_dataset
 from ..util.atomic import atomic_directory
 from ..util.progress import make_progress
 from .runs import RunInfo, open_run
@@ -136,9 +137,9 @@ def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, op
     )
 
 
-def _check_fingerprint(run: RunInfo, problems: Problems, force: bool) -> None:
+def _check_fingerprint(run: RunInfo, given: dict[str, str], force: bool) -> None:
     """Refuse data other than the run was trained on (other dataset or other manifest) unless forced."""
-    trained, given = run.fingerprint, problems.fingerprint
+    trained = run.fingerprint
     if force or not trained:
         return
     for key in ("dataset", "manifest_sha256"):
@@ -155,8 +156,14 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     options.validate()
     started = time.perf_counter()
     run = open_run(run_dir)
-    problems = load_problems(data or run.data_path, run.fold, "test")
-    _check_fingerprint(run, problems, force)
+    ds = open_dataset(data or run.data_path)
+    _check_fingerprint(run, ds.fingerprint(), force)
+    try:
+        selection = select_samples(ds, run.fold, "test")
+    except UsageError:
+        raise UsageError(f"{ds.path}: the run was trained on fold {run.fold or '(none)'} of '{run.dataset}', "
+                         f"which dataset '{ds.meta.dataset}' does not have") from None
+    problems = build_problems(ds, selection)
     torch_device = _device(device)
     model = run.load_model(torch_device)
     trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet)

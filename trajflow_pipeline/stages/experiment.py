@@ -64,6 +64,31 @@ class ExperimentConfig:
     source: dict[str, Any] = field(default_factory=dict)
 
 
+#: options each ingest accepts in [data]
+INGEST_OPTIONS: dict[str | None, tuple[str, ...]] = {"synthetic-bimodal": ("samples", "seed"), "eth-ucy": ("raw",)}
+
+
+def _table(section: dict[str, Any], key: str, path: Path, name: str | None = None) -> dict[str, Any]:
+    """A sub-table of the config (empty when absent); anything but a table is an error naming it."""
+    value = section.get(key, {})
+    if not isinstance(value, dict):
+        raise UsageError(f"{path}: [{name or key}] must be a table, not {type(value).__name__}")
+    return value
+
+
+def _list(value: Any, key: str, path: Path) -> list[Any]:
+    """A list value; a single scalar counts as a one-element list (folds = "hotel")."""
+    if isinstance(value, (str, int, float)):
+        return [value]
+    if not isinstance(value, list):
+        raise UsageError(f"{path}: {key} must be a list, not {type(value).__name__}")
+    return value
+
+
+def _strings(value: Any, key: str, path: Path) -> list[str]:
+    return [str(v) for v in _list(value, key, path)]
+
+
 def _unknown(section: dict[str, Any], allowed: set[str], where: str, path: Path) -> None:
     extra = sorted(set(section) - allowed)
     if extra:
@@ -80,34 +105,41 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
     except tomllib.TOMLDecodeError as error:
         raise UsageError(f"{path}: not valid TOML ({error})") from None
     _unknown(raw, _TOP_KEYS, "the top level", path)
-    data, protocol = raw.get("data", {}), raw.get("protocol", {})
+    data, protocol = _table(raw, "data", path), _table(raw, "protocol", path)
     _unknown(protocol, {"models", "folds", "seeds"}, "[protocol]", path)
-    _unknown(raw.get("train", {}), {"set"}, "[train]", path)
-    _unknown(raw.get("eval", {}), {"samples", "k", "workers", "batch_size", "metrics", "seed", "max_pooled"}, "[eval]", path)
+    _unknown(_table(raw, "train", path), {"set"}, "[train]", path)
+    eval_section = _table(raw, "eval", path)
+    _unknown(eval_section, {"samples", "k", "workers", "batch_size", "metrics", "seed", "max_pooled"}, "[eval]", path)
     if "path" not in data:
         raise UsageError(f"{path}: [data] needs a path")
     ingest = data.get("ingest")
     if ingest is not None and ingest not in INGESTS:
         raise UsageError(f"{path}: [data] ingest must be one of {', '.join(INGESTS)}, got {ingest!r}")
-    folds = protocol.get("folds")
-    eval_section = dict(raw.get("eval", {}))
-    if "metrics" in eval_section:
-        eval_section["metrics"] = tuple(eval_section["metrics"])
-    options = EvalOptions(**eval_section)
-    options.validate()
-    config = ExperimentConfig(
-        name=str(raw.get("name", path.stem)),
-        data_path=Path(data["path"]),
-        ingest=ingest,
-        ingest_options={k: v for k, v in data.items() if k not in ("path", "ingest")},
-        models=tuple(protocol.get("models", ("trajflow",))),
-        folds=folds if folds is None or isinstance(folds, str) else tuple(str(f) for f in folds),
-        seeds=tuple(int(s) for s in protocol.get("seeds", (0,))),
-        train_overrides=tuple(raw.get("train", {}).get("set", ())),
-        model_overrides={name: tuple(section.get("set", ())) for name, section in raw.get("models", {}).items()},
-        eval_options=options,
-        source=raw,
-    )
+    _unknown(data, {"path", "ingest", *INGEST_OPTIONS.get(ingest, ())}, "[data]", path)
+    models_section = _table(raw, "models", path)
+    for name in models_section:
+        _unknown(_table(models_section, name, path, f"models.{name}"), {"set"}, f"[models.{name}]", path)
+    try:
+        folds = protocol.get("folds")
+        options = EvalOptions(**{k: tuple(_strings(v, f"eval.{k}", path)) if k == "metrics" else v
+                                 for k, v in eval_section.items()})
+        options.validate()
+        config = ExperimentConfig(
+            name=str(raw.get("name", path.stem)),
+            data_path=Path(str(data["path"])),
+            ingest=ingest,
+            ingest_options={k: v for k, v in data.items() if k not in ("path", "ingest")},
+            models=tuple(_strings(protocol.get("models", ["trajflow"]), "protocol.models", path)),
+            folds=folds if folds is None or folds == "all" else tuple(_strings(folds, "protocol.folds", path)),
+            seeds=tuple(int(s) for s in _list(protocol.get("seeds", [0]), "protocol.seeds", path)),
+            train_overrides=tuple(_strings(raw.get("train", {}).get("set", []), "train.set", path)),
+            model_overrides={name: tuple(_strings(section.get("set", []), f"models.{name}.set", path))
+                             for name, section in models_section.items()},
+            eval_options=options,
+            source=raw,
+        )
+    except (TypeError, ValueError) as error:
+        raise UsageError(f"{path}: a value has the wrong type ({error})") from None
     _check_models(config, path)
     return config
 
@@ -169,12 +201,16 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
 
     config = load_experiment(config_path)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    text = Path(config_path).read_text()
+    if (out / "config.toml").exists() and (out / "config.toml").read_text() != text:
+        raise UsageError(f"{out}: this experiment directory was made with a different config "
+                         f"({out / 'config.toml'}); resuming would mix settings. Use a new -o, or delete it")
     data = _ensure_data(config, quiet)
     open_dataset(data)
     folds = _folds(config, data)
     plan = [(m, f, s) for m in config.models for f in folds for s in config.seeds]
-    atomic_write_text(out / "config.toml", Path(config_path).read_text())
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.toml", text)
     runs: list[str] = []
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)

@@ -31,7 +31,7 @@ class RunInfo:
 
     @property
     def name(self) -> str:
-        return self.path.name
+        return self.path.resolve().name
 
     def load_model(self, device: torch.device | str = "cpu") -> TrajectoryModel:
         """The final model of the run, checked to be of the run's model family."""
