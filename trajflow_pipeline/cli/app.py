@@ -121,12 +121,16 @@ def ingest_csv_command(
 def inspect_command(
     data: Annotated[Path, typer.Argument(help="A dataset directory written by `trajflow ingest`.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the summary as JSON on stdout.")] = False,
+    check_tracks: Annotated[bool, typer.Option(
+        "--check-tracks/--no-check-tracks",
+        help="Read every tracks shard to validate its rows (NaN/inf, duplicated or unsorted keys, unknown scenes, "
+             "incomplete sample windows); --no-check-tracks skips this full read for huge datasets.")] = True,
 ) -> None:
-    """Summarise a dataset: scenes, agents, rows, samples per fold and split, dt, agent types."""
+    """Summarise a dataset: scenes, agents, rows, samples per fold and split, dt, agent types; validate its rows."""
     from ..stages.inspect import summarize
 
     with user_errors():
-        summary = summarize(data)
+        summary = summarize(data, check_tracks_contents=check_tracks)
     if as_json:
         typer.echo(json.dumps(summary, indent=2, default=str))
         return
@@ -136,7 +140,7 @@ def inspect_command(
 def _print_summary(summary: dict) -> None:
     overview = Table(title=f"{summary['dataset']}  ({summary['path']})", show_header=False)
     for key in ("schema_version", "written_by", "protocol", "dt", "scenes", "agents", "track_rows",
-                "track_shards", "samples", "groups", "has_map"):
+                "track_shards", "samples", "groups", "has_map", "tracks_checked"):
         overview.add_row(key, str(summary[key]))
     overview.add_row("horizons (past/future)",
                      ", ".join(f"{h['n_past']}/{h['n_future']} ({h['len']})" for h in summary["horizons"]))

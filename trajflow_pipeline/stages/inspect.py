@@ -1,4 +1,9 @@
-"""`trajflow inspect`: what a dataset directory holds, for people (rich tables) and scripts (JSON)."""
+"""`trajflow inspect`: what a dataset directory holds, for people (rich tables) and scripts (JSON).
+
+Opening a dataset checks the manifest, the scenes and samples tables and the tracks shards' schema and metadata;
+`check_tracks` also validates the contents of every tracks shard, streaming them one at a time, so that bad rows
+show up here rather than halfway through a training run.
+"""
 
 from __future__ import annotations
 
@@ -7,13 +12,36 @@ from typing import Any
 
 import polars as pl
 
-from ..schemas import PROTOCOL_FOLDS, open_dataset
+from ..schemas import PROTOCOL_FOLDS, Dataset, open_dataset
+from ..schemas.validate import TracksContentCheck, validate_references
 
 
-def summarize(path: str | Path) -> dict[str, Any]:
-    """Counts and metadata of a dataset: scenes, agents, rows, samples per fold / split, agent types."""
+def check_tracks(ds: Dataset, scenes: pl.DataFrame, samples: pl.DataFrame) -> None:
+    """Validate the contents of every tracks shard, one shard in memory at a time.
+
+    Per shard (as training and evaluation do when they read it): nulls, NaN or infinite values, agent types,
+    duplicated (scene_id, agent_id, frame) keys and sort order. Across tables: rows of scenes missing from the
+    scenes table, scenes spanning two shards, samples whose window is not complete in the tracks. Raises a
+    DataError naming the file and the offending rows.
+    """
+    check = TracksContentCheck(scenes, samples, ds.path / "samples.parquet")
+    for shard, tracks in ds.iter_track_shards():
+        check.add_shard(tracks, shard)
+        del tracks  # let it go before the next shard is read: one shard in memory, not two
+    check.finish()
+
+
+def summarize(path: str | Path, *, check_tracks_contents: bool = False) -> dict[str, Any]:
+    """Counts and metadata of a dataset: scenes, agents, rows, samples per fold / split, agent types.
+
+    `check_tracks_contents` also reads every tracks shard in full to validate it (:func:`check_tracks`); off by
+    default because writers already validate each shard, and the scan costs a full read of the tracks.
+    """
     ds = open_dataset(path)
     scenes, samples = ds.scenes(), ds.samples()
+    validate_references(samples, scenes, ds.path / "samples.parquet")
+    if check_tracks_contents:
+        check_tracks(ds, scenes, samples)
     tracks = ds.scan_tracks()
     agents = tracks.select(pl.struct("scene_id", "agent_id").n_unique()).collect().item()
     types = (tracks.group_by("agent_type").agg(pl.struct("scene_id", "agent_id").n_unique().alias("agents"),
@@ -38,5 +66,6 @@ def summarize(path: str | Path) -> dict[str, Any]:
         "samples_by_location": by_location.rows(named=True),
         "agent_types": types.rows(named=True),
         "has_map": "map_path" in scenes.columns and scenes.get_column("map_path").null_count() < scenes.height,
+        "tracks_checked": check_tracks_contents,
         "lineage": ds.lineage,
     }
