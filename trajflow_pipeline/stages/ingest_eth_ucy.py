@@ -19,7 +19,7 @@ import polars as pl
 from ..errors import DataError, TrajflowError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util.progress import make_progress
-from .textfile import read_numeric_table
+from .textfile import read_numeric_tables
 from .windows import complete_windows, identical_input_groups
 
 DATASET = "eth_ucy"
@@ -110,42 +110,49 @@ def discover_sources(raw: Path) -> dict[str, SequenceSource]:
     return _flat_sources(raw)
 
 
-def _read_sequence(source: SequenceSource) -> pl.DataFrame:
-    """All lines of one sequence as tracks rows, with integer frames and pedestrian ids checked."""
-    parts = []
-    for path in source.files:
-        table = read_numeric_table(path, ("frame", "ped", "x", "y"))
-        fractional = {column: pl.col(column) != pl.col(column).round() for column in ("frame", "ped")}
-        off_step = pl.col("frame") % RAW_FRAME_STEP != 0
-        flags = table.select(*[flag.any().alias(name) for name, flag in fractional.items()],
-                             off_step.any().alias("off_step")).row(0, named=True)
-        for column, flag in fractional.items():
-            if flags[column]:
-                first = table.filter(flag).row(0, named=True)
-                raise DataError(f"{column} must be a whole number, got {first[column]}", path=path, line=first["line"])
-        if flags["off_step"]:
-            first = table.filter(off_step).row(0, named=True)
-            raise DataError(f"frame {first['frame']:g} is not a multiple of the frame step {RAW_FRAME_STEP}",
-                            path=path, line=first["line"])
-        parts.append(table.with_columns(source=pl.lit(str(path))))
-    lines = pl.concat(parts)
-    key = pl.struct("frame", "ped")
-    repeated = lines.filter(~key.is_first_distinct())
-    if repeated.height:
-        again = repeated.row(0, named=True)
-        first = lines.filter((pl.col("frame") == again["frame"]) & (pl.col("ped") == again["ped"])).row(0, named=True)
-        raise DataError(f"duplicate row for frame {again['frame']:g}, pedestrian {again['ped']:g} "
-                        f"(first at {Path(first['source']).name}:{first['line']})",
-                        path=again["source"], line=again["line"])
+def _read_tracks(sources: dict[str, SequenceSource]) -> pl.DataFrame:
+    """All lines of every sequence as tracks rows, with integer frames and pedestrian ids checked.
+
+    Every file is parsed in one pass and every check runs as one query over all lines; only when a check
+    fails is the first offending line looked up to name its file and line.
+    """
+    files = [(name, path) for name, source in sources.items() for path in source.files]
+    lines = read_numeric_tables([path for _, path in files], ("frame", "ped", "x", "y")).with_columns(
+        scene_id=pl.col("file").replace_strict(range(len(files)), [name for name, _ in files],
+                                               return_dtype=pl.String))
+    checks = {
+        "__fractional_frame": pl.col("frame") != pl.col("frame").round(),
+        "__fractional_ped": pl.col("ped") != pl.col("ped").round(),
+        "__off_step": pl.col("frame") % RAW_FRAME_STEP != 0,
+        "__duplicate": ~pl.struct("scene_id", "frame", "ped").is_first_distinct(),
+    }
+    problems = lines.with_columns(**checks).filter(pl.any_horizontal(*checks)).head(1)
+    if problems.height:
+        _raise_line_problem(problems.row(0, named=True), lines, [path for _, path in files])
     frame = (pl.col("frame") / RAW_FRAME_STEP).round().cast(pl.Int64)
-    return (lines.select(
-        pl.lit(source.name).alias("scene_id"),
+    return (lines.lazy().select(
+        "scene_id",
         pl.col("ped").cast(pl.Int64).alias("agent_id"),
         pl.lit("pedestrian").alias("agent_type"),
         frame.alias("frame"),
         (frame.cast(pl.Float64) * DT).alias("t"),
         "x", "y",
-    ).sort("scene_id", "agent_id", "frame"))
+    ).sort("scene_id", "agent_id", "frame").collect())
+
+
+def _raise_line_problem(problem: dict, lines: pl.DataFrame, paths: list[Path]) -> None:
+    """Explain the first line that failed a check of :func:`_read_tracks` (checks in the order listed there)."""
+    path, line = paths[problem["file"]], problem["line"]
+    for column in ("frame", "ped"):
+        if problem[column] != round(problem[column]):
+            raise DataError(f"{column} must be a whole number, got {problem[column]}", path=path, line=line)
+    if problem["__off_step"]:
+        raise DataError(f"frame {problem['frame']:g} is not a multiple of the frame step {RAW_FRAME_STEP}",
+                        path=path, line=line)
+    first = lines.filter((pl.col("scene_id") == problem["scene_id"]) & (pl.col("frame") == problem["frame"])
+                         & (pl.col("ped") == problem["ped"])).row(0, named=True)
+    raise DataError(f"duplicate row for frame {problem['frame']:g}, pedestrian {problem['ped']:g} "
+                    f"(first at {paths[first['file']].name}:{first['line']})", path=path, line=line)
 
 
 def _val_start_raw_frame(source: SequenceSource) -> int:
@@ -187,31 +194,29 @@ def ingest_eth_ucy(raw: str | Path, out: str | Path, *, overwrite: bool = False,
     raw, out = Path(raw), Path(out)
     sources = discover_sources(raw)
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
-    tracks_parts, scene_rows = [], []
     with make_progress(quiet) as progress:
-        task = progress.add_task("reading ETH/UCY sequences", total=len(sources))
-        for name, source in sources.items():
-            tracks_parts.append(_read_sequence(source))
-            val_start = _val_start_raw_frame(source)
-            location = SEQUENCES[name]
-            scene_rows.append({
-                "dataset": DATASET, "scene_id": name, "location": location, "dt": DT,
-                "source": ";".join(_relative(path, raw) for path in source.files),
-                "fold": location if location in FOLDS else None,
-                "val_start_frame": val_start // RAW_FRAME_STEP,
-            })
-            progress.advance(task)
-    scenes = pl.DataFrame(scene_rows, schema_overrides={"fold": pl.String, "val_start_frame": pl.Int64})
-    tracks = pl.concat(tracks_parts).sort("scene_id", "agent_id", "frame")
+        task = progress.add_task("reading ETH/UCY sequences", total=None)
+        tracks = _read_tracks(sources)
+        progress.update(task, total=1, completed=1)
+    scenes = pl.DataFrame([_scene_row(name, source, raw) for name, source in sources.items()],
+                          schema_overrides={"fold": pl.String, "val_start_frame": pl.Int64})
     samples = _samples(tracks, scenes)
     if samples.height == 0:
         raise TrajflowError(f"{raw}: no pedestrian has {N_PAST + N_FUTURE} consecutive frames; no samples")
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
-        for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):
-            writer.add_tracks(scene_tracks)
+        writer.add_tracks(tracks)
         writer.finish(scenes, samples, lineage={"raw": str(raw.resolve()), "n_past": N_PAST,
                                                 "n_future": N_FUTURE, "raw_frame_step": RAW_FRAME_STEP})
     return out
+
+
+def _scene_row(name: str, source: SequenceSource, raw: Path) -> dict[str, object]:
+    """The scenes-table row of one sequence: its location, fold, source files and train/val cut."""
+    location = SEQUENCES[name]
+    return {"dataset": DATASET, "scene_id": name, "location": location, "dt": DT,
+            "source": ";".join(_relative(path, raw) for path in source.files),
+            "fold": location if location in FOLDS else None,
+            "val_start_frame": _val_start_raw_frame(source) // RAW_FRAME_STEP}
 
 
 def _relative(path: Path, root: Path) -> str:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 
 from ..errors import DataError
@@ -39,6 +41,55 @@ def read_numeric_table(path: Path, columns: tuple[str, ...]) -> pl.DataFrame:
     if values.select(bad.any()).item():
         _raise_first_problem(path, values.filter(bad), columns)
     return values.select("line", *[pl.col(f"__{name}").alias(name) for name in columns])
+
+
+def read_numeric_tables(paths: Sequence[Path], columns: tuple[str, ...]) -> pl.DataFrame:
+    """Read many numeric text files at once: `file` (position in `paths`), 1-based `line` and Float64 `columns`.
+
+    Rows come in file order, then line order. Files that are cleanly TAB-separated (the common case) are parsed
+    together by one CSV read, which is several times faster than splitting lines; any file with spaces, CR or an
+    irregularity, and all files whenever that one read finds a problem, go through :func:`read_numeric_table`,
+    so the errors (file, line, what is wrong) are the same on both paths.
+    """
+    contents = [_read_bytes(path) for path in paths]
+    tab_only = [i for i, data in enumerate(contents) if data and b" " not in data and b"\r" not in data]
+    parsed = _parse_tab_separated([contents[i] for i in tab_only], tab_only, columns) if tab_only else None
+    fast = set(tab_only) if parsed is not None else set()
+    parts = [] if parsed is None else [parsed]
+    parts.extend(read_numeric_table(path, columns).select(pl.lit(i, dtype=pl.Int64).alias("file"),
+                                                          pl.col("line").cast(pl.Int64), *columns)
+                 for i, path in enumerate(paths) if i not in fast)
+    return pl.concat(parts).sort("file", "line") if len(parts) > 1 else parts[0]
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as error:
+        raise DataError(f"cannot read file ({error.strerror})", path=path) from None
+
+
+def _parse_tab_separated(contents: list[bytes], file_ids: list[int],
+                         columns: tuple[str, ...]) -> pl.DataFrame | None:
+    """One CSV read over the concatenated files, or None when any line is not exactly len(columns) finite
+    numbers separated by single TABs (the caller then falls back to the line-by-line reader)."""
+    chunks = [data if data.endswith(b"\n") else data + b"\n" for data in contents]
+    line_counts = np.asarray([chunk.count(b"\n") for chunk in chunks], dtype=np.int64)
+    buffer = b"".join(chunks)
+    total = int(line_counts.sum())
+    if buffer.count(b"\t") != (len(columns) - 1) * total:
+        return None
+    try:
+        table = pl.read_csv(buffer, separator="\t", has_header=False, quote_char=None,
+                            schema={name: pl.Float64 for name in columns})
+    except (pl.exceptions.PolarsError, UnicodeDecodeError):
+        return None
+    if table.height != total or not table.select(pl.all_horizontal(pl.all().is_finite().fill_null(False)).all()
+                                                 ).item():
+        return None
+    starts = np.repeat(np.cumsum(line_counts) - line_counts, line_counts)
+    return table.select(pl.Series("file", np.repeat(np.asarray(file_ids, dtype=np.int64), line_counts)),
+                        pl.Series("line", np.arange(total, dtype=np.int64) - starts + 1), *columns)
 
 
 def _raise_first_problem(path: Path, problems: pl.DataFrame, columns: tuple[str, ...]) -> None:

@@ -58,20 +58,50 @@ def identical_input_groups(samples: pl.DataFrame, tracks: pl.DataFrame,
 
     Inputs are identical when the same agents' classes are present at t0 and every past position (target's and
     context agents') agrees after rounding to a `tolerance` grid. `tracks` must be sorted as the contract says.
-    Each agent window is hashed once, each (scene, frame) context once, so the cost is linear in the tracks
-    and samples. Ids are numbered in order of each group's first sample.
+    A cheap key over the t0 positions alone is compared first: samples whose key is unique cannot share inputs
+    with anyone, and only the rest (few in real data, all in multi-future sets) get their whole past windows
+    hashed. Each agent window is hashed once, each (scene, frame) context once, so the cost is linear in the
+    tracks and samples. Ids are numbered in order of each group's first sample.
     """
-    keys = []
     base = samples.select("scene_id", "agent_id", "t0_frame", "n_past").with_row_index("__order")
-    for (n_past,), part in base.group_by("n_past"):
-        windows = _window_hashes(tracks, int(n_past), tolerance)
-        context = (windows.group_by("scene_id", "frame")
-                   .agg(pl.col("window_hash").sort().alias("context"))
-                   .select("scene_id", "frame", pl.col("context").hash(seed=1).alias("context_hash")))
-        keys.append(part.join(windows, left_on=["scene_id", "agent_id", "t0_frame"],
-                              right_on=["scene_id", "agent_id", "frame"], how="left")
-                    .join(context, left_on=["scene_id", "t0_frame"], right_on=["scene_id", "frame"], how="left")
-                    .select("__order", pl.struct("window_hash", "context_hash").hash(seed=2).alias("key")))
+    now = _window_hashes(tracks, 1, tolerance)
+    keyed = _keys(base, now, "now_key").with_columns(
+        __candidate=pl.len().over("now_key") > 1)
+    candidates = keyed.filter(pl.col("__candidate"))
+    keys = [keyed.filter(~pl.col("__candidate")).select(
+        "__order", pl.struct("now_key", pl.lit(None, dtype=pl.UInt64).alias("full_key")).alias("key"))]
+    if candidates.height:
+        for (n_past,), part in candidates.group_by("n_past"):
+            windows = _window_hashes(_rows_in_windows(tracks, part, int(n_past)), int(n_past), tolerance)
+            keys.append(_keys(part.select("__order", "scene_id", "agent_id", "t0_frame", "now_key"), windows,
+                              "full_key").select("__order", pl.struct("now_key", "full_key").alias("key")))
     ordered = pl.concat(keys).sort("__order")
     first_seen = pl.col("__order").min().over("key")
     return ordered.select(first_seen.rank("dense").cast(pl.Int64).sub(1).alias("group_id")).to_series()
+
+
+def _rows_in_windows(tracks: pl.DataFrame, samples: pl.DataFrame, n_past: int) -> pl.DataFrame:
+    """The tracks rows (still sorted) at the frames of the samples' past windows, for every agent there."""
+    frames = (samples.select("scene_id", pl.int_ranges(pl.col("t0_frame") - n_past + 1, pl.col("t0_frame") + 1)
+                             .alias("frame"))
+              .explode("frame").unique())
+    return tracks.join(frames, on=["scene_id", "frame"], how="semi", maintain_order="left")
+
+
+def _keys(samples: pl.DataFrame, windows: pl.DataFrame, name: str) -> pl.DataFrame:
+    """`samples` with column `name`: a hash of the target's window and of the windows of everyone at t0.
+
+    The context (everyone at t0) is keyed as a multiset, order-free: the wrapping sums of the window hashes and
+    of a second hash of them, and the count.
+    """
+    windows_lazy = windows.lazy()
+    context = (windows_lazy.group_by("scene_id", "frame")
+               .agg(pl.col("window_hash").sum().alias("__sum"), pl.col("window_hash").hash(seed=4).sum().alias("__mix"),
+                    pl.len().alias("__count"))
+               .select("scene_id", "frame", pl.struct("__sum", "__mix", "__count").hash(seed=1).alias("context_hash")))
+    return (samples.lazy()
+            .join(windows_lazy, left_on=["scene_id", "agent_id", "t0_frame"],
+                  right_on=["scene_id", "agent_id", "frame"], how="left")
+            .join(context, left_on=["scene_id", "t0_frame"], right_on=["scene_id", "frame"], how="left")
+            .select(*samples.columns, pl.struct("window_hash", "context_hash").hash(seed=2).alias(name))
+            .collect())
