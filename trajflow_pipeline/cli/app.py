@@ -171,20 +171,30 @@ def eval_command(
         "--metric", help="Metric to compute (repeatable; default: all of min_ade, min_fde, min_ade_joint, "
                          "min_fde_joint, nll, nll_joint, jsd).")] = None,
     seed: Annotated[int, typer.Option(help="Seed of the sampling and the ROME fits.")] = 0,
-    steps: Annotated[Optional[int], typer.Option(help="Predicted steps (default: the dataset's horizon).")] = None,
+    steps: Annotated[Optional[int], typer.Option(
+        help="Predicted steps (default: the dataset's n_future; with --extended-horizon the longest n_future_max). "
+             "Fewer than n_future scores only those steps: warned and recorded in eval.json.")] = None,
+    extended_horizon: Annotated[bool, typer.Option(
+        "--extended-horizon",
+        help="Also score each sample over its own ground-truth horizon (samples column n_future_max; rounD: up "
+             "to 35 steps) as *_ext metrics, as the paper does for rounD. Models without an auto-regressive "
+             "decoder are extended at constant velocity past their trained horizon (recorded in eval.json).")
+    ] = False,
     max_pooled: Annotated[Optional[int], typer.Option(
         help="Cap on pooled predictions per identical-input group for ROME (default: all).")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
     force: Annotated[bool, typer.Option(help="Evaluate even on data other than the run was trained on.")] = False,
     quiet: Quiet = False,
 ) -> None:
-    """Draw samples for the test problems of the run's fold and compute minADE/minFDE, NLL and JSD."""
+    """Draw samples for the test problems of the run's fold and compute minADE/minFDE, NLL and JSD (and, with
+    --extended-horizon, the same over each sample's own longer ground-truth horizon as *_ext)."""
     from ..metrics import METRIC_NAMES
     from ..stages.evaluate import EvalOptions, aggregate_metrics, evaluate
 
     with user_errors():
-        options = EvalOptions(samples=samples, k=min(20, samples) if k is None else k, workers=workers, seed=seed, steps=steps, max_pooled=max_pooled,
-                              metrics=tuple(metric) if metric else METRIC_NAMES)
+        options = EvalOptions(samples=samples, k=min(20, samples) if k is None else k, workers=workers, seed=seed,
+                              steps=steps, max_pooled=max_pooled, metrics=tuple(metric) if metric else METRIC_NAMES,
+                              extended_horizon=extended_horizon)
         out = evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet)
     if not quiet:
         table = Table(title=f"{run}: test metrics (mean)")

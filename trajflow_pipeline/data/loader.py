@@ -6,6 +6,13 @@ The dataset's protocol (manifest) says how train / val / test are chosen:
                         according to their `split` column (samples with no split there are test-only);
 * ``fixed``          — the `split` column is the split (nuScenes challenge);
 * ``train-is-test``  — test on every sample; `split` separates train from the validation used for early stopping.
+
+Horizons: every sample of a selection shares ``n_future``, the horizon models train on (``batch.future``). A
+samples table may add ``n_future_max`` (rounD: up to 35 steps, the horizon the gap-acceptance decision needs);
+``extended=True`` then also reads each sample's ground truth up to its own ``n_future_max`` into
+``Problems.extended_future``, NaN-padded to the longest one, with ``Problems.horizon`` saying how many steps of
+each are real. Positions are never invented: a sample whose target lacks a position inside its horizon is a
+DataError. Map crops are uint8 (see :func:`maps.crops_for_problems`); the map CNN scales them by 1/255.
 """
 
 from __future__ import annotations
@@ -41,9 +48,18 @@ class Problems:
     n_future: int
     has_map: bool
     fingerprint: dict[str, str]
+    #: (B,) steps of ground truth per problem: n_future, or each sample's n_future_max when read `extended`
+    horizon: np.ndarray | None = None
+    #: (B, max(horizon), 2) float32 ground-truth future up to each problem's horizon, NaN after it (extended only)
+    extended_future: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.sample_id)
+
+    @property
+    def horizons(self) -> np.ndarray:
+        """(B,) ground-truth steps of each problem (n_future for all unless read with `extended`)."""
+        return np.full(len(self), self.n_future, dtype=np.int64) if self.horizon is None else self.horizon
 
 
 def list_folds(dataset: str | Path | Dataset) -> list[str]:
@@ -102,11 +118,13 @@ def _type_index() -> pl.Expr:
                                                return_dtype=pl.Int64)
 
 
-def _target_positions(samples: pl.DataFrame, tracks: pl.DataFrame, n_steps: int, n_past: int,
+def _target_positions(samples: pl.DataFrame, tracks: pl.DataFrame, n_steps: int | str, n_past: int,
                       path: Path) -> np.ndarray:
-    """(B, n_steps, 2) positions of each sample's target from t0 - n_past + 1 on."""
-    steps = (samples.select("__b", "scene_id", "agent_id", "t0_frame")
-             .with_columns(step=pl.int_ranges(0, n_steps)).explode("step")
+    """(B, T, 2) positions of each sample's target from t0 - n_past + 1 on: `n_steps` of them (an int, or the
+    name of a column of per-sample step counts, then T is their maximum and later steps are NaN)."""
+    count = pl.lit(n_steps) if isinstance(n_steps, int) else pl.col(n_steps)
+    steps = (samples.select("__b", "scene_id", "agent_id", "t0_frame", count.alias("__n"))
+             .with_columns(step=pl.int_ranges(0, pl.col("__n"))).explode("step")
              .with_columns(frame=pl.col("t0_frame") - (n_past - 1) + pl.col("step"))
              .join(tracks, on=["scene_id", "agent_id", "frame"], how="left")
              .sort("__b", "step"))
@@ -115,7 +133,22 @@ def _target_positions(samples: pl.DataFrame, tracks: pl.DataFrame, n_steps: int,
         first = missing.row(0, named=True)
         raise DataError(f"sample {first['__b']} of the selection: target {first['agent_id']} of scene "
                         f"'{first['scene_id']}' has no position at frame {first['frame']}", path=path)
-    return steps.select("x", "y").to_numpy().reshape(len(samples), n_steps, 2)
+    width = int(steps.get_column("step").max()) + 1
+    out = np.full((len(samples), width, 2), np.nan)
+    out[steps.get_column("__b").to_numpy(), steps.get_column("step").to_numpy()] = steps.select("x", "y").to_numpy()
+    return out
+
+
+def _extended_horizons(samples: pl.DataFrame, n_future: int, path: Path) -> np.ndarray:
+    """(B,) each sample's own ground-truth horizon: `n_future_max` where the table has it (null: n_future)."""
+    if "n_future_max" not in samples.columns:
+        return np.full(samples.height, n_future, dtype=np.int64)
+    horizon = samples.get_column("n_future_max").fill_null(n_future).cast(pl.Int64)
+    short = samples.filter(horizon < n_future)
+    if short.height:
+        raise DataError(f"sample {short.get_column('sample_id')[0]} has n_future_max "
+                        f"{horizon.filter(horizon < n_future)[0]} below its n_future {n_future}", path=path)
+    return horizon.to_numpy()
 
 
 def _neighbours(samples: pl.DataFrame, tracks: pl.DataFrame, n_past: int) -> dict[str, np.ndarray]:
@@ -148,15 +181,23 @@ def _neighbours(samples: pl.DataFrame, tracks: pl.DataFrame, n_past: int) -> dic
     return {"neighbours": positions, "neighbours_valid": valid, "neighbours_mask": mask, "neighbours_type": types}
 
 
-def build_problems(ds: Dataset, samples: pl.DataFrame) -> Problems:
-    """Assemble tensors for the given rows of the samples table (all with the same n_past and n_future)."""
+def build_problems(ds: Dataset, samples: pl.DataFrame, *, extended: bool = False) -> Problems:
+    """Assemble tensors for the given rows of the samples table (all with the same n_past and n_future).
+
+    `extended` also reads each sample's ground truth up to its own `n_future_max` (see the module docstring).
+    """
     path = ds.path / "samples.parquet"
     if samples.height == 0:
         raise DataError("the selected split has no samples", path=path)
     n_past, n_future = _uniform(samples, "n_past", path), _uniform(samples, "n_future", path)
+    horizon = _extended_horizons(samples, n_future, path) if extended else None
     samples = samples.with_row_index("__b").with_columns(pl.col("__b").cast(pl.Int64))
     tracks = _tracks_of(ds, samples.get_column("scene_id"))
-    window = _target_positions(samples, tracks, n_past + n_future, n_past, path)
+    if horizon is None:
+        window = _target_positions(samples, tracks, n_past + n_future, n_past, path)
+    else:
+        window = _target_positions(samples.with_columns(__steps=pl.Series(horizon + n_past)), tracks, "__steps",
+                                   n_past, path)
     target_type = (samples.select("__b", "scene_id", "agent_id", pl.col("t0_frame").alias("frame"))
                    .join(tracks, on=["scene_id", "agent_id", "frame"], how="left").sort("__b")
                    .select(_type_index()).to_series().to_numpy())
@@ -167,10 +208,10 @@ def build_problems(ds: Dataset, samples: pl.DataFrame) -> Problems:
     if has_map:
         past = window[:, :n_past]
         map_crop = torch.from_numpy(crops_for_problems(ds.path, samples.get_column("scene_id").to_numpy(),
-                                                       past[:, -1], past_headings(past)))
+                                                       past[:, -1], past_headings(past), dtype=np.uint8))
     batch = SceneBatch(
         past=torch.from_numpy(window[:, :n_past].astype(np.float32)),
-        future=torch.from_numpy(window[:, n_past:].astype(np.float32)),
+        future=torch.from_numpy(window[:, n_past:n_past + n_future].astype(np.float32)),
         agent_type=torch.from_numpy(np.array(target_type, dtype=np.int64)),
         **{name: torch.from_numpy(value) for name, value in context.items()},
         map_crop=map_crop,
@@ -185,11 +226,14 @@ def build_problems(ds: Dataset, samples: pl.DataFrame) -> Problems:
         group_id=samples.get_column("group_id").to_numpy(),
         joint_id=joint.to_numpy(),
         dt=ds.meta.dt, dataset=ds.meta.dataset, n_past=n_past, n_future=n_future, has_map=has_map,
-        fingerprint=ds.fingerprint(),
+        fingerprint=ds.fingerprint(), horizon=horizon,
+        extended_future=None if horizon is None else torch.from_numpy(window[:, n_past:].astype(np.float32)),
     )
 
 
-def load_problems(dataset_dir: str | Path, fold: str | None = None, split: str = "train") -> Problems:
-    """The prediction problems of `split` (train / val / test) of a dataset, as tensors on the CPU."""
+def load_problems(dataset_dir: str | Path, fold: str | None = None, split: str = "train", *,
+                  extended: bool = False) -> Problems:
+    """The prediction problems of `split` (train / val / test) of a dataset, as tensors on the CPU; `extended`
+    also reads each sample's ground truth up to its `n_future_max` (evaluation past the trained horizon)."""
     ds = open_dataset(dataset_dir)
-    return build_problems(ds, select_samples(ds, fold, split))
+    return build_problems(ds, select_samples(ds, fold, split), extended=extended)

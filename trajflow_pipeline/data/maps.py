@@ -19,6 +19,11 @@ x along its heading, y to its left):
 
 Rasters coarser than the crop's resolution are sampled directly; finer rasters are first reduced to the crop's
 resolution (Lanczos, as the reference implementation does) so that point sampling does not alias.
+
+Storage: a float32 crop costs 160 KB (1.6 GB per 10k problems), so the loader keeps crops as uint8
+(``dtype=np.uint8``: round(255 v), 40 KB each) and the model's CNN divides by 255 on the device -- the same
+scaling as the rasters' own grey levels (v = level / 255). A crop whose pixels fall on raster pixel centres is
+exact; an interpolated one is rounded to the nearest of the raster's 256 levels (at most 0.5 / 255 off).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import polars as pl
 import torch
 import torch.nn.functional as F
@@ -127,8 +133,10 @@ def crop_offsets(height: int, width: int, metres_per_pixel: float, ahead_fractio
 def heading_aligned_crops(raster: np.ndarray, world_to_px: tuple[float, ...] | np.ndarray, positions: np.ndarray,
                           headings: np.ndarray, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
                           metres_per_pixel_out: float = DEFAULT_METRES_PER_PIXEL,
-                          ahead_fraction: float = DEFAULT_AHEAD_FRACTION) -> np.ndarray:
-    """Crops (B, 1, height, width) float32 in [0, 1] of one raster around B agents, rotated to their headings.
+                          ahead_fraction: float = DEFAULT_AHEAD_FRACTION,
+                          dtype: npt.DTypeLike = np.float32) -> np.ndarray:
+    """Crops (B, 1, height, width) float32 in [0, 1] of one raster around B agents, rotated to their headings
+    (``dtype=np.uint8``: the same crops as grey levels round(255 v), a quarter of the memory; see module doc).
 
     raster: (H, W) grey values (uint8 0..255 or floats in [0, 1]); world_to_px: its affine [a..f];
     positions: (B, 2) world metres; headings: (B,) radians (0 = world +x, counter-clockwise). See the module
@@ -152,7 +160,7 @@ def heading_aligned_crops(raster: np.ndarray, world_to_px: tuple[float, ...] | n
     matrices = (affine @ rotation).astype(np.float32)                                          # (B, 2, 2)
     shifts = (positions @ affine.T + norm @ np.array([c, f]) - 1.0).astype(np.float32)       # (B, 2)
     offsets = crop_offsets(height, width, metres_per_pixel_out, ahead_fraction).reshape(-1, 2).astype(np.float32)
-    out = np.zeros((len(positions), 1, height, width), dtype=np.float32)
+    out = np.zeros((len(positions), 1, height, width), dtype=_crop_dtype(dtype))
     source = torch.from_numpy(np.ascontiguousarray(values))[None, None]                      # (1, 1, H, W)
     # one preallocated grid buffer, filled in place: fresh multi-MB buffers per chunk cost more than the maths
     buffer = np.empty((min(CHUNK, len(positions)), height * width, 2), dtype=np.float32)
@@ -169,8 +177,23 @@ def heading_aligned_crops(raster: np.ndarray, world_to_px: tuple[float, ...] | n
                 target += shifts[start:stop, axis, None]
             sampled = F.grid_sample(source, torch.from_numpy(grid).reshape(1, -1, width, 2), mode="bilinear",
                                     padding_mode="zeros", align_corners=True)
-            out[start:stop, 0] = sampled.reshape(stop - start, height, width).numpy()
-    return np.clip(out, 0.0, 1.0, out=out)
+            out[start:stop, 0] = _store(sampled.reshape(stop - start, height, width).numpy(), out.dtype)
+    return out if out.dtype == np.uint8 else np.clip(out, 0.0, 1.0, out=out)
+
+
+def _crop_dtype(dtype: npt.DTypeLike) -> np.dtype:
+    """float32 or uint8, the two storage types of crops (ValueError for anything else)."""
+    kind = np.dtype(dtype)
+    if kind not in (np.dtype(np.float32), np.dtype(np.uint8)):
+        raise ValueError(f"crops are float32 or uint8, not {kind}")
+    return kind
+
+
+def _store(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Sampled values in [0, 1] as the crop dtype: unchanged for float32, grey levels round(255 v) for uint8."""
+    if dtype != np.uint8:
+        return values
+    return np.rint(np.clip(values, 0.0, 1.0) * np.float32(255.0)).astype(np.uint8)
 
 
 @functools.lru_cache(maxsize=16)
@@ -194,8 +217,10 @@ def scene_maps(dataset_dir: str | Path) -> pl.DataFrame:
 def crops_for_problems(dataset_dir: str | Path, scene_id: np.ndarray | list[str], position: np.ndarray,
                        heading: np.ndarray, *, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH,
                        metres_per_pixel_out: float = DEFAULT_METRES_PER_PIXEL,
-                       ahead_fraction: float = DEFAULT_AHEAD_FRACTION) -> np.ndarray:
-    """Heading-aligned crops (B, 1, height, width) float32 for B problems of a dataset, grouped by scene map.
+                       ahead_fraction: float = DEFAULT_AHEAD_FRACTION,
+                       dtype: npt.DTypeLike = np.float32) -> np.ndarray:
+    """Heading-aligned crops (B, 1, height, width) for B problems of a dataset, grouped by scene map: float32 in
+    [0, 1], or with ``dtype=np.uint8`` grey levels round(255 v) (what the loader stores; see the module doc).
 
     scene_id: (B,) scene of each problem; position: (B, 2) world position of the target at t0; heading: (B,)
     radians. Problems whose scene has no map get an all-zero crop. Each map file is read once per process.
@@ -207,7 +232,7 @@ def crops_for_problems(dataset_dir: str | Path, scene_id: np.ndarray | list[str]
     if not len(scene_id) == len(position) == len(heading):
         raise ValueError(f"scene_id, position and heading differ in length: {len(scene_id)}, {len(position)}, "
                          f"{len(heading)}")
-    out = np.zeros((len(scene_id), 1, height, width), dtype=np.float32)
+    out = np.zeros((len(scene_id), 1, height, width), dtype=_crop_dtype(dtype))
     for scene, map_path, m_per_px, affine in scene_maps(dataset_dir).iter_rows():
         index = np.flatnonzero(scene_id == scene)
         if len(index) == 0:
@@ -219,7 +244,7 @@ def crops_for_problems(dataset_dir: str | Path, scene_id: np.ndarray | list[str]
                                tuple(float(v) for v in affine), float(metres_per_pixel_out))
         out[index] = heading_aligned_crops(raster.image, raster.world_to_px, position[index], heading[index],
                                            height=height, width=width, metres_per_pixel_out=metres_per_pixel_out,
-                                           ahead_fraction=ahead_fraction)
+                                           ahead_fraction=ahead_fraction, dtype=out.dtype)
     return out
 
 

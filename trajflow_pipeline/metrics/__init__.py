@@ -2,8 +2,9 @@
 joint) and JSD from ROME density estimates, with ROME fits spread over processes.
 
 Knows nothing about files, models or Parquet: inputs are arrays in metres, pred (A, S, T, 2), gt (A, T, 2),
-optional integer keys joint_key (A,) and group_id (A,). `compute_metrics` is the eval stage's entry point;
-the per-metric functions are for direct use (figures such as minADE as a function of K, notebooks).
+optional integer keys joint_key (A,) and group_id (A,), and an optional per-agent horizon (A,) when agents have
+ground truth for different numbers of steps (rounD's extended evaluation). `compute_metrics` is the eval stage's
+entry point; the per-metric functions are for direct use (figures such as minADE as a function of K, notebooks).
 """
 
 from trajflow_pipeline.metrics.compute import METRIC_NAMES, check_metric_names, compute_metrics

@@ -11,6 +11,9 @@ Table columns (one row per evaluated unit plus one aggregate row per metric):
   aggregate    bool     True on the one summary row per metric: the mean over agents (min_ade, min_fde,
                         nll) or over groups (min_*_joint, nll_joint, jsd), as the paper averages
 A metric with no unit to evaluate (JSD without any group of >= 2 agents) contributes no rows at all.
+
+With `horizon` (A,), each agent is scored over its own first horizon[a] steps (rounD's extended evaluation);
+see `metrics.displacement` and `metrics.density` for what that means per metric.
 """
 
 from __future__ import annotations
@@ -22,8 +25,8 @@ import polars as pl
 
 from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.metrics.density import density_metrics
-from trajflow_pipeline.metrics.displacement import DEFAULT_K, ade_fde_per_draw, joint_min
-from trajflow_pipeline.metrics.inputs import Groups, check_trajectories, group_agents
+from trajflow_pipeline.metrics.displacement import DEFAULT_K, ade_fde_per_draw, joint_horizon, joint_min
+from trajflow_pipeline.metrics.inputs import Groups, check_trajectories, evaluated_horizon, group_agents
 
 #: Every metric `compute_metrics` knows, in table order.
 METRIC_NAMES: tuple[str, ...] = ("min_ade", "min_fde", "min_ade_joint", "min_fde_joint", "nll", "nll_joint", "jsd")
@@ -68,8 +71,9 @@ def _first_members(groups: Groups, keys: np.ndarray) -> np.ndarray:
 
 def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray | None = None,
                     group_id: np.ndarray | None = None, k: int = DEFAULT_K, t_eval: int | None = None,
-                    metrics: Sequence[str] = METRIC_NAMES, pool_groups: bool = True, max_pooled: int | None = None,
-                    workers: int | None = None, quiet: bool = False, seed: int = 0) -> pl.DataFrame:
+                    horizon: np.ndarray | None = None, metrics: Sequence[str] = METRIC_NAMES,
+                    pool_groups: bool = True, max_pooled: int | None = None, workers: int | None = None,
+                    quiet: bool = False, seed: int = 0) -> pl.DataFrame:
     """Evaluate `pred` (A, S, T, 2) against `gt` (A, T, 2) (metres) and return the long table described above.
 
     joint_key  (A,) int: agents predicted together (same scene and t0) — joint metrics; None: each agent alone
@@ -78,39 +82,49 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
                (see `metrics.density`); None: each agent alone (no JSD rows).
     k          draws used by minADE / minFDE (the first k of the S).
     t_eval     evaluate the first t_eval steps only (None: all T).
+    horizon    (A,) int: evaluate agent a over its first horizon[a] steps only (None: all); `gt` (and `pred`)
+               may hold NaN after it. Joint metrics use each joint group's shortest horizon.
     pool_groups  False fits each agent's NLL density on its own samples even when group_id is given.
     max_pooled   cap on pooled predictions per identical-input group (None: all, as the reference).
     workers    processes for the ROME fits (None: all cores; 1: in this process); numbers do not depend on it.
     seed       drives only the subsampling / chunking of large pooled sets and the per-fit RNG seeds.
     """
     wanted = check_metric_names(metrics)
-    pred, gt = check_trajectories(pred, gt, t_eval)  # validated once, cut to t_eval; below uses all steps
+    n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
+    pred, gt = check_trajectories(pred, gt, t_eval, horizon)  # validated once, cut to t_eval
     n_agents = pred.shape[0]
+    steps = None if horizon is None else evaluated_horizon(horizon, n_agents, n_steps, t_eval)
     agents = np.arange(n_agents)
     joint = group_agents(joint_key, n_agents, "joint_key")
     ids = group_agents(group_id, n_agents, "group_id")
     frames: list[pl.DataFrame] = []
     if any(m in wanted for m in ("min_ade", "min_fde", "min_ade_joint", "min_fde_joint")):
-        ade, fde = ade_fde_per_draw(pred, gt, k=k)
+        ade, fde = ade_fde_per_draw(pred, gt, k=k, horizon=steps)
+        joint_steps = joint_horizon(steps, joint_key, n_agents)
+        if steps is not None and not np.array_equal(joint_steps, steps):   # mixed within a joint group
+            joint_ade, joint_fde = ade_fde_per_draw(pred, gt, k=k, horizon=joint_steps)
+        else:
+            joint_ade, joint_fde = ade, fde
         per_metric = {
             "min_ade": lambda: (ade.min(axis=1), agents, None),
             "min_fde": lambda: (fde.min(axis=1), agents, None),
-            "min_ade_joint": lambda: (joint_min(ade, joint), _first_members(joint, joint.keys), joint.keys),
-            "min_fde_joint": lambda: (joint_min(fde, joint), _first_members(joint, joint.keys), joint.keys),
+            "min_ade_joint": lambda: (joint_min(joint_ade, joint), _first_members(joint, joint.keys), joint.keys),
+            "min_fde_joint": lambda: (joint_min(joint_fde, joint), _first_members(joint, joint.keys), joint.keys),
         }
         frames += [_rows(m, *per_metric[m]()) for m in wanted if m in per_metric]
     density_wanted = {m for m in wanted if m in _DENSITY}
     if density_wanted:
         res = density_metrics(pred, gt, metrics=density_wanted, joint_key=joint_key, group_id=group_id,
-                              pool_groups=pool_groups, max_pooled=max_pooled, workers=workers, quiet=quiet,
-                              seed=seed)
+                              horizon=steps, pool_groups=pool_groups, max_pooled=max_pooled, workers=workers,
+                              quiet=quiet, seed=seed)
         if res.nll is not None:
             frames.append(_rows("nll", res.nll, agents, None))
         if res.nll_joint is not None and res.nll_joint_keys is not None:
             frames.append(_rows("nll_joint", res.nll_joint, _first_members(joint, res.nll_joint_keys),
                                 res.nll_joint_keys))
         if res.jsd is not None and res.jsd_keys is not None:
-            frames.append(_rows("jsd", res.jsd, _first_members(ids, res.jsd_keys), res.jsd_keys))
+            first = res.jsd_agents if res.jsd_agents is not None else _first_members(ids, res.jsd_keys)
+            frames.append(_rows("jsd", res.jsd, first, res.jsd_keys))
     table = pl.concat(frames, how="vertical") if frames else pl.DataFrame(schema=SCHEMA)
     if table.height == 0:
         raise UsageError(f"nothing to report for metrics {list(wanted)}: jsd needs a group_id with groups of "

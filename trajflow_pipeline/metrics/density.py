@@ -28,6 +28,15 @@ How each number is made (matching the reference benchmarking framework of Schuma
   * ROME's log-densities are finite even far from every sample (its KDE works in log space), so no floor
     or clipping is applied to NLL, like the reference; a single far-off ground truth can therefore dominate
     an average, which is the metric's known behaviour, not an artefact.
+  * Variable horizons (`horizon`, (A,): rounD scores each sample up to its own ``n_future_max``): a density is
+    only defined over a fixed dimension, so agents are split by horizon h and every fit of an agent uses its
+    own draws (and ground truth) truncated to its h steps (dimension 2h). Pooled identical-input densities
+    (NLL, JSD) pool only the members that share h -- truncating the others' draws would also be valid, but
+    one rule keeps each fit's dimension and meaning plain; their rows keep the group_id as key. A joint group
+    is evaluated over its shortest member horizon (rounD's target / ego pairs share theirs, so this never
+    truncates there). NLL values of different horizons are densities of different dimension (about 2h times
+    a per-coordinate term); their mean is what the extended evaluation reports, and per-sample rows let a
+    reader split it by horizon. All fits of all horizons run in one pool, seeded by their order.
 """
 
 from __future__ import annotations
@@ -39,7 +48,8 @@ from scipy.special import logsumexp
 
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics.divergence import jsd_from_log_densities
-from trajflow_pipeline.metrics.inputs import Groups, check_trajectories, flatten_futures, group_agents
+from trajflow_pipeline.metrics.inputs import (Groups, check_trajectories, evaluated_horizon, flatten_futures,
+                                              group_agents, group_minimum)
 from trajflow_pipeline.metrics.parallel import RomeTask, run_rome_tasks
 
 #: Smallest chunk the reference uses for a pooled predicted density (points per ROME fit).
@@ -57,6 +67,7 @@ class DensityResults:
     nll_joint: np.ndarray | None = None           # (G,)
     jsd_keys: np.ndarray | None = None            # (H,) group_id values of groups with >= 2 agents
     jsd: np.ndarray | None = None                 # (H,)
+    jsd_agents: np.ndarray | None = None          # (H,) the lowest agent index of each JSD group
 
 
 @dataclass
@@ -135,8 +146,10 @@ def _check_options(metrics: set[str], max_pooled: int | None, seed: int) -> None
 
 
 def _build_plan(pred_flat: np.ndarray, gt_flat: np.ndarray, metrics: set[str], id_groups: Groups,
-                joint_groups: Groups, pooled: bool, max_pooled: int | None, seed: int) -> _Plan:
-    """Every ROME fit the requested metrics need, each made once (see `density_metrics`)."""
+                joint_groups: Groups, pooled: bool, max_pooled: int | None, seed: int,
+                agent_ids: np.ndarray | None = None) -> _Plan:
+    """Every ROME fit the requested metrics need, each made once (see `density_metrics`); `agent_ids` are the
+    agents' indices in the caller's arrays (for error messages; default: their row here)."""
     plan = _Plan()
     n_agents, n_samples = pred_flat.shape[:2]
     plan.want_indep = "nll" in metrics or ("nll_joint" in metrics and bool((joint_groups.counts == 1).any()))
@@ -144,7 +157,8 @@ def _build_plan(pred_flat: np.ndarray, gt_flat: np.ndarray, metrics: set[str], i
     jsd_groups = np.flatnonzero(id_groups.counts >= 2).tolist() if "jsd" in metrics else []
     if plan.want_indep and not pooled:
         for a in range(n_agents):
-            plan.agent_fit[a] = plan.add(pred_flat[a], (gt_flat[a:a + 1],), f"the samples of agent {a}")
+            name = a if agent_ids is None else int(agent_ids[a])
+            plan.agent_fit[a] = plan.add(pred_flat[a], (gt_flat[a:a + 1],), f"the samples of agent {name}")
     pooled_groups = set(jsd_groups) | (set(range(id_groups.keys.size)) if plan.want_indep and pooled else set())
     for g in sorted(pooled_groups):
         _plan_pooled(plan, pred_flat, gt_flat, id_groups, g, g in jsd_groups, max_pooled, seed)
@@ -178,29 +192,52 @@ def _group_jsd(plan: _Plan, results: list[tuple[np.ndarray, ...]], g: int) -> fl
                                   gt_fit[1], _chunk_mean(results, plan.pooled_fits[g], 1))
 
 
-def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], joint_key: np.ndarray | None = None,
-                    group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
-                    t_eval: int | None = None, workers: int | None = None, quiet: bool = False,
-                    seed: int = 0) -> DensityResults:
-    """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
+@dataclass
+class _Part:
+    """Agents evaluated over one common number of steps, the metrics computed for them, and their fits."""
 
-    Fits needed by several metrics are made once (the pooled predicted density serves NLL and JSD; a
-    singleton joint group reuses the indep NLL). `seed` only drives the subsampling / chunking of large
-    pooled sets and the per-task RNG seeds; results do not depend on `workers`.
-    """
-    _check_options(metrics, max_pooled, seed)
-    pred, gt = check_trajectories(pred, gt, t_eval)
+    agents: np.ndarray          # (n,) global agent indices, ascending
+    metrics: set[str]
+    plan: _Plan
+    id_groups: Groups           # identical-input groups among `agents` (indices local to the part)
+    joint_groups: Groups        # joint groups among `agents`
+    offset: int = 0             # index of the part's first task in the combined task list
+
+
+def _parts(pred: np.ndarray, gt: np.ndarray, metrics: set[str], joint_key: np.ndarray | None,
+           group_id: np.ndarray | None, horizon: np.ndarray, pooled: bool, max_pooled: int | None,
+           seed: int) -> list[_Part]:
+    """Split agents by evaluated steps (indep metrics: own horizon; nll_joint: its group's shortest) and plan
+    each part's fits on draws and ground truths truncated to those steps."""
     n_agents = pred.shape[0]
-    pred_flat, gt_flat = flatten_futures(pred), flatten_futures(gt)  # (A, S, D), (A, D)
-    id_groups = group_agents(group_id, n_agents, "group_id")
-    joint_groups = group_agents(joint_key, n_agents, "joint_key")
-    plan = _build_plan(pred_flat, gt_flat, set(metrics), id_groups, joint_groups,
-                       pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed)
+    joint_h = group_minimum(horizon, group_agents(joint_key, n_agents, "joint_key"))
+    if np.array_equal(joint_h, horizon):
+        splits = [(horizon, set(metrics))]
+    else:
+        indep = set(metrics) - {"nll_joint"}
+        splits = [(horizon, indep)] * bool(indep) + [(joint_h, {"nll_joint"})] * ("nll_joint" in metrics)
+    parts: list[_Part] = []
+    offset = 0
+    for steps_of, wanted in splits:
+        for steps in np.unique(steps_of):
+            agents = np.flatnonzero(steps_of == steps)
+            ids = group_agents(None if group_id is None else np.asarray(group_id)[agents], agents.size, "group_id")
+            joint = group_agents(None if joint_key is None else np.asarray(joint_key)[agents], agents.size,
+                                 "joint_key")
+            every = agents.size == n_agents and steps == pred.shape[2]    # the common case: views, no copies
+            sub_pred, sub_gt = (pred, gt) if every else (pred[agents, :, :steps], gt[agents, :steps])
+            plan = _build_plan(flatten_futures(sub_pred), flatten_futures(sub_gt), wanted, ids, joint,
+                               pooled=pooled, max_pooled=max_pooled, seed=seed, agent_ids=agents)
+            parts.append(_Part(agents, wanted, plan, ids, joint, offset))
+            offset += len(plan.tasks)
+    return parts
 
-    results = run_rome_tasks(plan.tasks, workers=workers, quiet=quiet, base_seed=seed)
 
+def _assemble(part: _Part, results: list[tuple[np.ndarray, ...]]) -> DensityResults:
+    """One part's metrics from its fits' results (indices local to the part, keys global)."""
+    plan, id_groups, joint_groups, metrics = part.plan, part.id_groups, part.joint_groups, part.metrics
     out = DensityResults()
-    log_p_gt = _log_p_at_gt(plan, results, id_groups, n_agents) if plan.want_indep else None
+    log_p_gt = _log_p_at_gt(plan, results, id_groups, part.agents.size) if plan.want_indep else None
     if "nll" in metrics and log_p_gt is not None:
         out.nll = -log_p_gt
     if "nll_joint" in metrics:
@@ -215,37 +252,91 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
         groups = sorted(plan.gt_fit)
         out.jsd_keys = id_groups.keys[groups].astype(np.int64)
         out.jsd = np.array([_group_jsd(plan, results, g) for g in groups], dtype=np.float64)
+        out.jsd_agents = part.agents[[id_groups.members[g][0] for g in groups]].astype(np.int64)
     return out
 
 
+def _merge(parts: list[_Part], results: list[DensityResults], metrics: set[str], n_agents: int) -> DensityResults:
+    """The parts' results as one DensityResults over all agents (group rows ascending by key, then agent)."""
+    out = DensityResults()
+    if "nll" in metrics:
+        out.nll = np.empty(n_agents)
+        for part, result in zip(parts, results):
+            if result.nll is not None:
+                out.nll[part.agents] = result.nll
+    if "nll_joint" in metrics:
+        keys = np.concatenate([r.nll_joint_keys for r in results if r.nll_joint_keys is not None])
+        values = np.concatenate([r.nll_joint for r in results if r.nll_joint is not None])
+        order = np.argsort(keys, kind="stable")
+        out.nll_joint_keys, out.nll_joint = keys[order], values[order]
+    if "jsd" in metrics:
+        done = [r for r in results if r.jsd_keys is not None]
+        keys = np.concatenate([r.jsd_keys for r in done]).astype(np.int64)
+        agents = np.concatenate([r.jsd_agents for r in done]).astype(np.int64)
+        order = np.lexsort((agents, keys))
+        out.jsd_keys, out.jsd_agents = keys[order], agents[order]
+        out.jsd = np.concatenate([r.jsd for r in done])[order]
+    return out
+
+
+def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], joint_key: np.ndarray | None = None,
+                    group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
+                    t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
+                    quiet: bool = False, seed: int = 0) -> DensityResults:
+    """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
+
+    Fits needed by several metrics are made once (the pooled predicted density serves NLL and JSD; a
+    singleton joint group reuses the indep NLL). `horizon` (A,) scores each agent over its own first steps
+    (see the module docstring). `seed` only drives the subsampling / chunking of large pooled sets and the
+    per-task RNG seeds; results do not depend on `workers`.
+    """
+    _check_options(metrics, max_pooled, seed)
+    n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
+    pred, gt = check_trajectories(pred, gt, t_eval, horizon)
+    n_agents = pred.shape[0]
+    steps = evaluated_horizon(horizon, n_agents, n_steps, t_eval)
+    for key, name in ((group_id, "group_id"), (joint_key, "joint_key")):
+        group_agents(key, n_agents, name)  # validated before any fit
+    parts = _parts(pred, gt, set(metrics), joint_key, group_id, steps,
+                   pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed)
+
+    results = run_rome_tasks([task for part in parts for task in part.plan.tasks], workers=workers, quiet=quiet,
+                             base_seed=seed)
+
+    assembled = [_assemble(part, results[part.offset:part.offset + len(part.plan.tasks)]) for part in parts]
+    return _merge(parts, assembled, set(metrics), n_agents)
+
+
 def nll_indep(pred: np.ndarray, gt: np.ndarray, *, group_id: np.ndarray | None = None, pool_groups: bool = True,
-              max_pooled: int | None = None, t_eval: int | None = None, workers: int | None = None,
-              quiet: bool = False, seed: int = 0) -> np.ndarray:
+              max_pooled: int | None = None, t_eval: int | None = None, horizon: np.ndarray | None = None,
+              workers: int | None = None, quiet: bool = False, seed: int = 0) -> np.ndarray:
     """NLL of each agent's ground truth under the ROME density of its predictions, shape (A,) (see module doc)."""
     result = density_metrics(pred, gt, metrics={"nll"}, group_id=group_id, pool_groups=pool_groups,
-                             max_pooled=max_pooled, t_eval=t_eval, workers=workers, quiet=quiet, seed=seed)
+                             max_pooled=max_pooled, t_eval=t_eval, horizon=horizon, workers=workers, quiet=quiet,
+                             seed=seed)
     assert result.nll is not None
     return result.nll
 
 
 def nll_joint(pred: np.ndarray, gt: np.ndarray, joint_key: np.ndarray | None, *, group_id: np.ndarray | None = None,
               pool_groups: bool = True, max_pooled: int | None = None, t_eval: int | None = None,
-              workers: int | None = None, quiet: bool = False, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+              horizon: np.ndarray | None = None, workers: int | None = None, quiet: bool = False,
+              seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Joint NLL per group of `joint_key`: (group keys (G,), values (G,)) (see module doc)."""
     result = density_metrics(pred, gt, metrics={"nll_joint"}, joint_key=joint_key, group_id=group_id,
-                             pool_groups=pool_groups, max_pooled=max_pooled, t_eval=t_eval, workers=workers,
-                             quiet=quiet, seed=seed)
+                             pool_groups=pool_groups, max_pooled=max_pooled, t_eval=t_eval, horizon=horizon,
+                             workers=workers, quiet=quiet, seed=seed)
     assert result.nll_joint_keys is not None and result.nll_joint is not None
     return result.nll_joint_keys, result.nll_joint
 
 
 def jsd(pred: np.ndarray, gt: np.ndarray, group_id: np.ndarray, *, max_pooled: int | None = None,
-        t_eval: int | None = None, workers: int | None = None, quiet: bool = False,
-        seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
+        quiet: bool = False, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """JSD in [0, 1] per group of identical inputs with >= 2 agents: (group_id values (H,), values (H,))."""
     if group_id is None:
         raise UsageError("jsd needs group_id: the ground-truth distribution is the set of gts of a group")
     result = density_metrics(pred, gt, metrics={"jsd"}, group_id=group_id, max_pooled=max_pooled,
-                             t_eval=t_eval, workers=workers, quiet=quiet, seed=seed)
+                             t_eval=t_eval, horizon=horizon, workers=workers, quiet=quiet, seed=seed)
     assert result.jsd_keys is not None and result.jsd is not None
     return result.jsd_keys, result.jsd

@@ -30,8 +30,9 @@ class SceneBatch:
     neighbours_valid: (B, N, P) bool, True where a neighbour position exists at that step.
     neighbours_mask:  (B, N) bool, True for real neighbours (False is padding); N may be 0.
     neighbours_type:  (B, N) int64 index into AGENT_TYPES.
-    map_crop:         (B, 1, H, W) float32 in [0, 1], a heading-aligned grey-scale crop around the target
-                      (156 x 257 by default), or None when the dataset has no map.
+    map_crop:         (B, 1, H, W) a heading-aligned grey-scale crop around the target (156 x 257 by default):
+                      uint8 grey levels as the loader stores them (the map CNN divides by 255 on the device) or
+                      float32 in [0, 1]; None when the dataset has no map.
     """
 
     past: Tensor

@@ -147,11 +147,20 @@ class MapEncoder(nn.Module):
         self.size = (height, width)
 
     def forward(self, crop: Tensor) -> Tensor:
-        """Crops (B, 1, H, W) in [0, 1] -> (B, out)."""
+        """Crops (B, 1, H, W) -> (B, out): floats in [0, 1], or uint8 grey levels (how the loader stores them, a
+        quarter of the memory), converted here, on the crops' device, to level / 255 -- the same scaling as
+        float crops, so both give identical outputs."""
         if tuple(crop.shape[-2:]) != self.size:
             raise ValueError(f"map crops must be {self.size[0]} x {self.size[1]}, got "
                              f"{crop.shape[-2]} x {crop.shape[-1]}")
-        return self.head(self.convs(crop).flatten(1))
+        return self.head(self.convs(crop_values(crop, self.convs[0].weight.dtype)).flatten(1))
+
+
+def crop_values(crop: Tensor, dtype: torch.dtype) -> Tensor:
+    """Map crops as floats in [0, 1]: uint8 grey levels divided by 255 (as the rasters are scaled), floats as given."""
+    if crop.dtype == torch.uint8:
+        return crop.to(dtype) / 255.0
+    return crop.to(dtype)
 
 
 class ContextEncoder(nn.Module):

@@ -19,7 +19,10 @@ Common interface (:class:`TrajectoryModel`):
   ============== =====================================================================================
 
   ``steps`` may exceed n_future: TrajFlow's auto-regressive decoder rolls out further; the direct-displacement
-  models extend beyond their trained horizon at constant velocity (their last displacement), as in the paper.
+  models extend beyond their trained horizon at constant velocity (their last displacement, i.e. the step
+  between their last two predicted positions), as the paper's reference framework does. ``beyond_horizon``
+  names which of the two a model does (:data:`AUTOREGRESSIVE`, :data:`CV_EXTENSION`; the cv baseline is
+  constant velocity throughout, :data:`NATIVE`), so that evaluation can record it.
 """
 
 from __future__ import annotations
@@ -38,6 +41,12 @@ from .config import DataSpec, ModelConfig
 from .encoders import ContextEncoder, MapEncoder, PastEncoder, SocialGNN
 from .flow import ConditionalSplineFlow
 from .normalize import Frame, denormalize_future, normalize_future, target_frame, to_local, to_world
+
+
+#: How a model predicts past its trained horizon (``TrajectoryModel.beyond_horizon``).
+AUTOREGRESSIVE = "autoregressive"
+CV_EXTENSION = "constant-velocity extension"
+NATIVE = "native"
 
 
 class Samples(NamedTuple):
@@ -64,6 +73,8 @@ class TrajectoryModel(nn.Module, abc.ABC):
     stages: ClassVar[tuple[str, ...]]
     closed_form_stages: ClassVar[tuple[str, ...]] = ()
     log_lik_space: ClassVar[str]
+    #: how steps past the trained horizon are made: AUTOREGRESSIVE, CV_EXTENSION or NATIVE (module docstring)
+    beyond_horizon: ClassVar[str] = CV_EXTENSION
 
     def __init__(self, config: ModelConfig, spec: DataSpec) -> None:
         super().__init__()
@@ -186,6 +197,7 @@ class TrajFlow(FlowModel):
     name = "trajflow"
     stages = ("autoencoder", "flow")
     log_lik_space = "latent"
+    beyond_horizon = AUTOREGRESSIVE
 
     def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
         super().__init__(config, spec, config.latent_dim, seed)
@@ -306,6 +318,7 @@ class ConstantVelocity(TrajectoryModel):
     stages = ("fit",)
     closed_form_stages = ("fit",)
     log_lik_space = "scaled_displacements"
+    beyond_horizon = NATIVE
 
     def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
         super().__init__(config, spec)

@@ -9,7 +9,26 @@ Writes, atomically, ``RUN/eval/``:
                               sample_id, aggregate (True on the one mean row per metric, as the paper averages;
                               the other rows are per agent, or per joint group / identical-input group);
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
-                              seconds, date, trajflow version, data fingerprint, the run's resolved config.
+                              seconds, date, trajflow version, data fingerprint, the run's resolved config, and
+                              ``horizon`` (below) with any ``warnings``.
+
+Horizons. The metrics compare the predictions with the ground truth over the dataset's ``n_future`` steps.
+``--steps S`` below it evaluates only the first S steps: allowed (a shorter-horizon evaluation is a legitimate
+question), but printed as a warning and recorded (``horizon.truncated``, ``warnings``), never silent.
+
+``--extended-horizon`` (EvalOptions.extended_horizon) is the paper's rounD protocol (section VI-B): the standard
+metrics stay over the trained horizon, and every metric is computed once more with the suffix ``_ext`` over
+each sample's own ground-truth horizon (the samples column ``n_future_max``: rounD needs up to 35 steps where
+models train on 25). Predictions then run to the longest of those horizons; ADE averages a sample's own valid
+steps, FDE takes its last one, ROME densities are fitted per sample on its own draws truncated to its horizon
+(see :mod:`trajflow_pipeline.metrics.density`), and joint groups (rounD: a target / ego pair, which share a
+horizon) use their shortest member's. ``*_ext`` averages over all samples, most of which (94 % of real rounD
+scenes) end at n_future; ``*_ext_long`` (aggregate rows only) averages the same per-sample values over just the
+samples (joint groups) that need more than n_future steps, the scenes the extrapolation check is about. The
+paper's extrapolation minADE (2.27 m for TrajFlow against 0.67 m over 25 steps) looks like the latter, so both
+are reported. TrajFlow's auto-regressive decoder rolls out the extra steps; models with
+a fixed output length (FloMo, TrajFlow w/o AE) are extended at constant velocity from their last two predicted
+positions, as the paper's reference framework does: ``horizon.extended_by_constant_velocity`` records it.
 """
 
 from __future__ import annotations
@@ -29,13 +48,18 @@ from .. import __version__
 from ..data import Problems, build_problems, select_samples
 from ..errors import TrajflowError, UsageError
 from ..metrics import METRIC_NAMES, check_metric_names, compute_metrics
-from ..model.models import TrajectoryModel
+from ..metrics.inputs import group_agents, group_minimum
+from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import open_dataset
 from ..util.atomic import atomic_directory
-from ..util.progress import make_progress
+from ..util.progress import console, make_progress
 from .runs import RunInfo, open_run
 
 EVAL_DIR = "eval"
+#: suffix of the metrics scored over each sample's own ground-truth horizon (--extended-horizon)
+EXTENDED_SUFFIX = "_ext"
+#: further suffix of the extended metrics' means over only the samples that need more than n_future steps
+LONG_SUFFIX = "_long"
 
 
 @dataclass(frozen=True)
@@ -49,6 +73,8 @@ class EvalOptions:
     seed: int = 0
     batch_size: int = 512
     steps: int | None = None
+    #: also score each sample over its own ground-truth horizon (samples column n_future_max) as *_ext metrics
+    extended_horizon: bool = False
     #: cap on the pooled predictions of an identical-input group fed to ROME (None: all, as the reference
     #: framework); the synthetic set pools 3000 x draws points, which costs minutes per fit without a cap
     max_pooled: int | None = None
@@ -62,17 +88,91 @@ class EvalOptions:
             raise UsageError(f"--workers must be at least 1, got {self.workers}")
         if self.steps is not None and self.steps < 1:
             raise UsageError(f"--steps must be at least 1, got {self.steps}")
+        if not isinstance(self.extended_horizon, bool):
+            raise UsageError(f"extended_horizon must be true or false, got {self.extended_horizon!r}")
         if self.max_pooled is not None and self.max_pooled < 2:
             raise UsageError(f"--max-pooled must be at least 2, got {self.max_pooled}")
         check_metric_names(self.metrics)
 
 
+@dataclass(frozen=True)
+class Horizon:
+    """How many steps an evaluation predicts and scores (eval.json ``horizon``; see the module docstring)."""
+
+    trained: int                 # the model's n_future
+    ground_truth: int            # the dataset's n_future
+    predicted: int               # steps drawn per future
+    evaluated: int               # steps the standard metrics compare: min(ground_truth, predicted)
+    beyond_horizon: str          # how the model makes steps past `trained` (models.AUTOREGRESSIVE, ...)
+    extended: bool = False       # *_ext metrics over each sample's own horizon
+    extended_min: int | None = None
+    extended_max: int | None = None
+    extended_samples: int | None = None   # samples whose own horizon exceeds ground_truth
+
+    @property
+    def truncated(self) -> bool:
+        """True when the standard metrics see fewer steps than the ground truth has."""
+        return self.evaluated < self.ground_truth
+
+    @property
+    def extended_by_cv(self) -> bool:
+        """True when steps past the model's trained horizon come from constant-velocity extension."""
+        return self.predicted > self.trained and self.beyond_horizon == CV_EXTENSION
+
+    def record(self) -> dict[str, Any]:
+        """The eval.json entry."""
+        out: dict[str, Any] = {
+            "trained": self.trained, "ground_truth": self.ground_truth, "predicted": self.predicted,
+            "evaluated": self.evaluated, "truncated": self.truncated, "beyond_trained": self.beyond_horizon,
+            "extended_by_constant_velocity": self.extended_by_cv, "extended": self.extended,
+        }
+        if self.extended:
+            out.update(extended_metrics=f"*{EXTENDED_SUFFIX}: each sample over its own n_future_max",
+                       extended_min=self.extended_min, extended_max=self.extended_max,
+                       extended_samples=self.extended_samples)
+        return out
+
+
+def plan_horizon(options: EvalOptions, problems: Problems, model: TrajectoryModel) -> Horizon:
+    """Steps to predict and to score. Default: the dataset's n_future, or with `extended_horizon` the longest
+    ground-truth horizon; `--steps` below that longest horizon is a UsageError (it could not be scored)."""
+    ground_truth = problems.n_future
+    own = problems.horizons
+    longest = int(own.max()) if options.extended_horizon else ground_truth
+    predicted = options.steps if options.steps is not None else longest
+    if options.extended_horizon and predicted < longest:
+        raise UsageError(f"--steps {predicted} is shorter than the longest ground-truth horizon ({longest} steps, "
+                         "samples column n_future_max) that --extended-horizon scores; drop --steps or raise it")
+    extended = {}
+    if options.extended_horizon:
+        extended = {"extended_min": int(own.min()), "extended_max": longest,
+                    "extended_samples": int((own > ground_truth).sum())}
+    return Horizon(trained=model.spec.n_future, ground_truth=ground_truth, predicted=predicted,
+                   evaluated=min(ground_truth, predicted), beyond_horizon=model.beyond_horizon,
+                   extended=options.extended_horizon, **extended)
+
+
+def horizon_warnings(horizon: Horizon, has_column: bool) -> list[str]:
+    """What a user must know about the evaluated horizon: a truncation, or an extension with nothing to extend."""
+    notes = []
+    if horizon.truncated:
+        notes.append(f"--steps {horizon.predicted} is below the dataset's n_future {horizon.ground_truth}: the "
+                     f"metrics cover only the first {horizon.predicted} of {horizon.ground_truth} ground-truth "
+                     "steps (recorded in eval.json, horizon.truncated)")
+    if horizon.extended and not has_column:
+        notes.append("--extended-horizon: the samples table has no n_future_max column, so every sample is scored "
+                     f"over n_future = {horizon.ground_truth} and the *{EXTENDED_SUFFIX} metrics equal the others")
+    return notes
+
+
 def draw_predictions(model: TrajectoryModel, problems: Problems, options: EvalOptions, *, device: torch.device,
-                     quiet: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                     quiet: bool = False, steps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sample `options.samples` futures per problem in batches: (A, S, H, 2) world positions and (A, S) log-liks.
 
-    One torch generator seeded with `options.seed` drives every draw, so the result is reproducible.
+    H is `steps` (default: `options.steps`, else the model's n_future). One torch generator seeded with
+    `options.seed` drives every draw, so the result is reproducible.
     """
+    steps = options.steps if steps is None else steps
     generator = torch.Generator(device=device).manual_seed(options.seed)
     trajectories, log_liks = [], []
     model.eval()
@@ -81,7 +181,7 @@ def draw_predictions(model: TrajectoryModel, problems: Problems, options: EvalOp
         for start in range(0, len(problems), options.batch_size):
             index = slice(start, min(start + options.batch_size, len(problems)))
             batch = problems.batch.index(index).without_future().to(device)
-            drawn = model.sample(batch, options.samples, steps=options.steps, generator=generator)
+            drawn = model.sample(batch, options.samples, steps=steps, generator=generator)
             trajectories.append(drawn.trajectories.double().cpu().numpy())
             log_liks.append(drawn.log_lik.double().cpu().numpy())
             progress.advance(task, index.stop - index.start)
@@ -102,30 +202,37 @@ def predictions_table(sample_id: np.ndarray, trajectories: np.ndarray, log_lik: 
 
 
 def ground_truth_table(problems: Problems) -> pl.DataFrame:
-    """Observed past and ground-truth future of every problem, steps relative to t0."""
+    """Observed past and ground-truth future of every problem, steps relative to t0: up to n_future, or with an
+    extended read up to each problem's own horizon (no rows past it: nothing is padded or invented)."""
     batch = problems.batch
     assert batch.future is not None
-    positions = torch.cat([batch.past, batch.future], dim=1).double().numpy()
+    future = batch.future if problems.extended_future is None else problems.extended_future
+    positions = torch.cat([batch.past, future], dim=1).double().numpy()
     agents, steps, _ = positions.shape
-    return pl.DataFrame({
+    table = pl.DataFrame({
         "sample_id": np.repeat(problems.sample_id.astype(np.int64), steps),
         "group_id": np.repeat(problems.group_id.astype(np.int64), steps),
         "joint_id": np.repeat(problems.joint_id.astype(np.int64), steps),
-        "step": np.tile(np.arange(1 - problems.n_past, problems.n_future + 1, dtype=np.int64), agents),
+        "step": np.tile(np.arange(1 - problems.n_past, steps - problems.n_past + 1, dtype=np.int64), agents),
         "x": positions[..., 0].ravel(),
         "y": positions[..., 1].ravel(),
     })
+    return table if problems.extended_future is None else table.filter(pl.col("x").is_not_nan())
 
 
 def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, options: EvalOptions, *,
-                  quiet: bool) -> pl.DataFrame:
-    """The long metrics table of one run, ground truth compared over the trained horizon."""
+                  quiet: bool, horizon: Horizon | None = None) -> pl.DataFrame:
+    """The long metrics table of one run: the standard metrics over `horizon.evaluated` steps (default: the
+    ground truth's n_future, or fewer when fewer were predicted) and, for an extended horizon, the same metrics
+    with suffix _ext over each problem's own ground-truth horizon."""
     assert problems.batch.future is not None
     gt = problems.batch.future.double().numpy()
-    horizon = min(gt.shape[1], trajectories.shape[2])
-    table = compute_metrics(trajectories[:, :, :horizon], gt[:, :horizon], joint_key=problems.joint_id,
-                            group_id=problems.group_id, k=options.k, metrics=options.metrics,
-                            workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled)
+    steps = min(gt.shape[1], trajectories.shape[2]) if horizon is None else horizon.evaluated
+    common = dict(joint_key=problems.joint_id, group_id=problems.group_id, k=options.k, metrics=options.metrics,
+                  workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled)
+    table = compute_metrics(trajectories[:, :, :steps], gt[:, :steps], **common)
+    if horizon is not None and horizon.extended:
+        table = pl.concat([table, _extended_metrics(problems, trajectories, table, common)], how="vertical")
     sample_ids = pl.Series(problems.sample_id.astype(np.int64))
     return table.with_columns(
         sample_id=pl.col("agent_index").map_batches(
@@ -135,6 +242,35 @@ def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, op
         pl.lit(run.fold, dtype=pl.String).alias("fold"), pl.lit(run.seed, dtype=pl.Int64).alias("seed"),
         "metric", "value", "agent_index", "group_key", "sample_id", "aggregate",
     )
+
+
+def _extended_metrics(problems: Problems, trajectories: np.ndarray, standard: pl.DataFrame,
+                      common: dict[str, Any]) -> pl.DataFrame:
+    """Every metric over each problem's own ground-truth horizon, named with EXTENDED_SUFFIX, plus LONG_SUFFIX
+    aggregates over the problems that need more than n_future steps. When no problem does, the extended
+    metrics are the standard metrics' very numbers, which are reused instead of refitted (and no LONG rows)."""
+    own = problems.horizons
+    if problems.extended_future is None or (own == problems.n_future).all():
+        return standard.with_columns(pl.col("metric") + EXTENDED_SUFFIX)
+    longest = int(own.max())
+    table = compute_metrics(trajectories[:, :, :longest], problems.extended_future.double().numpy(),
+                            horizon=own, **common)
+    return pl.concat([table.with_columns(pl.col("metric") + EXTENDED_SUFFIX),
+                      _long_aggregates(table, own, problems.joint_id, problems.n_future)], how="vertical")
+
+
+def _long_aggregates(table: pl.DataFrame, horizon: np.ndarray, joint_id: np.ndarray, n_future: int) -> pl.DataFrame:
+    """One aggregate row per metric (named + EXTENDED_SUFFIX + LONG_SUFFIX): the mean over the units (agents, or
+    joint / identical-input groups) whose horizon exceeds n_future; a joint group's horizon is its shortest."""
+    joint_h = group_minimum(horizon, group_agents(joint_id.astype(np.int64), len(horizon), "joint_key"))
+    units = table.filter(~pl.col("aggregate"))
+    agent = units.get_column("agent_index").to_numpy()
+    steps = np.where(units.get_column("metric").str.ends_with("_joint").to_numpy(), joint_h[agent], horizon[agent])
+    return (units.filter(pl.Series(steps > n_future))
+            .group_by("metric", maintain_order=True).agg(pl.col("value").mean())
+            .select((pl.col("metric") + EXTENDED_SUFFIX + LONG_SUFFIX).alias("metric"), "value",
+                    pl.lit(None, dtype=pl.Int64).alias("agent_index"), pl.lit(None, dtype=pl.Int64).alias("group_key"),
+                    pl.lit(True).alias("aggregate")))
 
 
 def _check_fingerprint(run: RunInfo, given: dict[str, str], force: bool) -> None:
@@ -163,11 +299,16 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     except UsageError:
         raise UsageError(f"{ds.path}: the run was trained on fold {run.fold or '(none)'} of '{run.dataset}', "
                          f"which dataset '{ds.meta.dataset}' does not have") from None
-    problems = build_problems(ds, selection)
+    problems = build_problems(ds, selection, extended=options.extended_horizon)
     torch_device = _device(device)
     model = run.load_model(torch_device)
-    trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet)
-    metrics = metrics_table(run, problems, trajectories, options, quiet=quiet)
+    horizon = plan_horizon(options, problems, model)
+    warnings = horizon_warnings(horizon, "n_future_max" in selection.columns)
+    for warning in warnings:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+    trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet,
+                                             steps=horizon.predicted)
+    metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon)
     info: dict[str, Any] = {
         "run": run.name, "run_dir": str(run.path.resolve()), "model": run.model, "dataset": problems.dataset,
         "fold": run.fold, "seed": run.seed, "samples": options.samples, "k": options.k,
@@ -176,7 +317,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "problems": len(problems), "steps": int(trajectories.shape[2]), "device": str(torch_device),
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "data_fingerprint": problems.fingerprint, "config": run.config,
-        "log_lik_label": model.log_lik_space,
+        "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
         **_group_counts(problems.group_id, options.metrics),
     }
     with atomic_directory(run.path / EVAL_DIR) as tmp:

@@ -19,6 +19,7 @@ An experiment config is TOML::
     [eval]
     samples = 100
     k = 20
+    extended_horizon = true              # also *_ext metrics over each sample's n_future_max (rounD)
 
 Runs land in ``EXP/runs/<model>-<fold>-s<seed>/``. Re-running the same command skips finished runs and resumes an
 interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work.
@@ -109,7 +110,8 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
     _unknown(protocol, {"models", "folds", "seeds"}, "[protocol]", path)
     _unknown(_table(raw, "train", path), {"set"}, "[train]", path)
     eval_section = _table(raw, "eval", path)
-    _unknown(eval_section, {"samples", "k", "workers", "batch_size", "metrics", "seed", "max_pooled"}, "[eval]", path)
+    _unknown(eval_section, {"samples", "k", "workers", "batch_size", "metrics", "seed", "max_pooled", "steps",
+                            "extended_horizon"}, "[eval]", path)
     if "path" not in data:
         raise UsageError(f"{path}: [data] needs a path")
     ingest = data.get("ingest")
