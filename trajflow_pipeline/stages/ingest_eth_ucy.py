@@ -113,31 +113,36 @@ def discover_sources(raw: Path) -> dict[str, SequenceSource]:
 def _read_tracks(sources: dict[str, SequenceSource]) -> pl.DataFrame:
     """All lines of every sequence as tracks rows, with integer frames and pedestrian ids checked.
 
-    Every file is parsed in one pass and every check runs as one query over all lines; only when a check
-    fails is the first offending line looked up to name its file and line.
+    Every file is parsed in one pass, sorted once into the contract's order (stable, so of two rows with the same
+    key the earlier line comes first) and checked by one query; only when a check fails is the first offending
+    line looked up to name its file and line.
     """
     files = [(name, path) for name, source in sources.items() for path in source.files]
-    lines = read_numeric_tables([path for _, path in files], ("frame", "ped", "x", "y")).with_columns(
-        scene_id=pl.col("file").replace_strict(range(len(files)), [name for name, _ in files],
-                                               return_dtype=pl.String))
+    scene_names = sorted(sources)
+    lines = (read_numeric_tables([path for _, path in files], ("frame", "ped", "x", "y"))
+             .with_columns(__scene=pl.col("file").replace_strict(
+                 range(len(files)), [scene_names.index(name) for name, _ in files], return_dtype=pl.Int64))
+             .sort("__scene", "ped", "frame", maintain_order=True))
+    same_key = pl.all_horizontal(pl.col(name) == pl.col(name).shift(1) for name in ("__scene", "ped", "frame"))
     checks = {
         "__fractional_frame": pl.col("frame") != pl.col("frame").round(),
         "__fractional_ped": pl.col("ped") != pl.col("ped").round(),
         "__off_step": pl.col("frame") % RAW_FRAME_STEP != 0,
-        "__duplicate": ~pl.struct("scene_id", "frame", "ped").is_first_distinct(),
+        "__duplicate": same_key.fill_null(False),
     }
-    problems = lines.with_columns(**checks).filter(pl.any_horizontal(*checks)).head(1)
+    problems = lines.with_columns(**checks).filter(pl.any_horizontal(*checks)).sort("file", "line").head(1)
     if problems.height:
         _raise_line_problem(problems.row(0, named=True), lines, [path for _, path in files])
     frame = (pl.col("frame") / RAW_FRAME_STEP).round().cast(pl.Int64)
-    return (lines.lazy().select(
-        "scene_id",
+    return lines.select(
+        pl.col("__scene").replace_strict(range(len(scene_names)), scene_names, return_dtype=pl.String)
+        .alias("scene_id"),
         pl.col("ped").cast(pl.Int64).alias("agent_id"),
         pl.lit("pedestrian").alias("agent_type"),
         frame.alias("frame"),
         (frame.cast(pl.Float64) * DT).alias("t"),
         "x", "y",
-    ).sort("scene_id", "agent_id", "frame").collect())
+    )
 
 
 def _raise_line_problem(problem: dict, lines: pl.DataFrame, paths: list[Path]) -> None:
@@ -149,8 +154,8 @@ def _raise_line_problem(problem: dict, lines: pl.DataFrame, paths: list[Path]) -
     if problem["__off_step"]:
         raise DataError(f"frame {problem['frame']:g} is not a multiple of the frame step {RAW_FRAME_STEP}",
                         path=path, line=line)
-    first = lines.filter((pl.col("scene_id") == problem["scene_id"]) & (pl.col("frame") == problem["frame"])
-                         & (pl.col("ped") == problem["ped"])).row(0, named=True)
+    first = (lines.filter((pl.col("__scene") == problem["__scene"]) & (pl.col("frame") == problem["frame"])
+                          & (pl.col("ped") == problem["ped"])).sort("file", "line").row(0, named=True))
     raise DataError(f"duplicate row for frame {problem['frame']:g}, pedestrian {problem['ped']:g} "
                     f"(first at {paths[first['file']].name}:{first['line']})", path=path, line=line)
 
@@ -182,8 +187,15 @@ def _samples(tracks: pl.DataFrame, scenes: pl.DataFrame) -> pl.DataFrame:
                        pl.lit(N_PAST, dtype=pl.Int64).alias("n_past"),
                        pl.lit(N_FUTURE, dtype=pl.Int64).alias("n_future"),
                        segment.alias("split"), "fold",
-                       pl.struct("scene_id", "t0_frame").rank("dense").cast(pl.Int64).sub(1).alias("joint_id")))
+                       _change_count("scene_id", "t0_frame").alias("joint_id")))
     return samples.with_columns(group_id=identical_input_groups(samples, tracks))
+
+
+def _change_count(*columns: str) -> pl.Expr:
+    """0, 1, 2, ...: how many times `columns` changed value from the first row on (a dense id of rows sorted by
+    them, without ranking)."""
+    changed = pl.any_horizontal(pl.col(name) != pl.col(name).shift(1) for name in columns).fill_null(False)
+    return changed.cum_sum().cast(pl.Int64)
 
 
 def ingest_eth_ucy(raw: str | Path, out: str | Path, *, overwrite: bool = False, quiet: bool = False) -> Path:

@@ -58,15 +58,17 @@ def identical_input_groups(samples: pl.DataFrame, tracks: pl.DataFrame,
 
     Inputs are identical when the same agents' classes are present at t0 and every past position (target's and
     context agents') agrees after rounding to a `tolerance` grid. `tracks` must be sorted as the contract says.
-    A cheap key over the t0 positions alone is compared first: samples whose key is unique cannot share inputs
-    with anyone, and only the rest (few in real data, all in multi-future sets) get their whole past windows
-    hashed. Each agent window is hashed once, each (scene, frame) context once, so the cost is linear in the
-    tracks and samples. Ids are numbered in order of each group's first sample.
+    A cheap key (the target's class and t0 position) is compared first: samples whose key is unique cannot share
+    inputs with anyone, and only the rest (few in real data, all in multi-future sets) get their whole past
+    windows and contexts hashed. Each agent window is hashed once, each (scene, frame) context once, so the cost
+    is linear in the tracks and samples. Ids are numbered in order of each group's first sample.
     """
     base = samples.select("scene_id", "agent_id", "t0_frame", "n_past").with_row_index("__order")
     now = _window_hashes(tracks, 1, tolerance)
-    keyed = _keys(base, now, "now_key").with_columns(
-        __candidate=pl.len().over("now_key") > 1)
+    keyed = (base.join(now, left_on=["scene_id", "agent_id", "t0_frame"], right_on=["scene_id", "agent_id", "frame"],
+                       how="left")
+             .with_columns(now_key=pl.struct("n_past", "window_hash").hash(seed=5))
+             .with_columns(__candidate=pl.len().over("now_key") > 1))
     candidates = keyed.filter(pl.col("__candidate"))
     keys = [keyed.filter(~pl.col("__candidate")).select(
         "__order", pl.struct("now_key", pl.lit(None, dtype=pl.UInt64).alias("full_key")).alias("key"))]
