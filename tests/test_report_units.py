@@ -13,6 +13,7 @@ from trajflow_pipeline.errors import DataError
 from trajflow_pipeline.report.curves import ade_per_draw, expected_min_curve, subset_min_weights
 from trajflow_pipeline.report.document import Cell, Code, Figure, Heading, Paragraph, Table
 from trajflow_pipeline.report.figures import kde_colours, plot_min_ade_k, relative_scale
+from trajflow_pipeline.report.paper import METRICS, metric_columns
 from trajflow_pipeline.report.render import to_html, to_markdown
 from trajflow_pipeline.report.scenes import choose_examples
 from trajflow_pipeline.report.tables import format_mean_std, summary_stats
@@ -81,3 +82,14 @@ def test_figure_helpers_handle_degenerate_input() -> None:
     assert kde_colours(np.zeros((50, 2))).tolist() == [1.0] * 50  # singular covariance: no density
     png = plot_min_ade_k([("cv", np.array([0.5]), None)], 1, "one draw")
     assert png.startswith(PNG_SIGNATURE) and len(png) > 1000
+
+
+def test_extended_horizon_metrics_get_labelled_columns_after_the_standard_ones() -> None:
+    columns = metric_columns(["min_ade", "nll_ext_long", "min_ade_ext", "custom", "min_fde_ext"])
+    names = [spec.name for spec in columns]
+    assert names[:len(METRICS)] == [spec.name for spec in METRICS]
+    assert names[len(METRICS):] == ["min_ade_ext", "min_fde_ext", "nll_ext_long", "custom"]
+    labels = {spec.name: spec.label for spec in columns}
+    assert labels["min_ade_ext"] == "minADE (to own horizon)"
+    assert labels["nll_ext_long"] == "NLL indep (to own horizon, long samples only)"
+    assert labels["custom"] == "custom"

@@ -82,7 +82,17 @@ def dataset_order(datasets: list[str] | set[str]) -> list[str]:
     return sorted(set(datasets), key=lambda d: _order_key(DATASET_LABELS, d))
 
 
+#: Suffixes of the metrics `trajflow eval --extended-horizon` adds (see stages/evaluate.py) and their labels.
+EXTENDED_VARIANTS: tuple[tuple[str, str], ...] = (
+    ("_ext", "to own horizon"),
+    ("_ext_long", "to own horizon, long samples only"),
+)
+
+
 def metric_columns(present: list[str] | set[str]) -> list[MetricSpec]:
-    """All standard metric columns, followed by any extra metric found in the data (shown with 3 decimals)."""
-    extra = sorted(set(present) - set(METRIC_BY_NAME))
-    return [*METRICS, *(MetricSpec(name, name, 3) for name in extra)]
+    """All standard metric columns, then the extended-horizon variants present (labelled after their base metric),
+    then any other metric found in the data (shown under its own name with 3 decimals)."""
+    extended = [MetricSpec(f"{spec.name}{suffix}", f"{spec.label} ({label})", spec.decimals)
+                for suffix, label in EXTENDED_VARIANTS for spec in METRICS if f"{spec.name}{suffix}" in present]
+    known = set(METRIC_BY_NAME) | {spec.name for spec in extended}
+    return [*METRICS, *extended, *(MetricSpec(name, name, 3) for name in sorted(set(present) - known))]
