@@ -176,8 +176,8 @@ def test_a_targets_gaps_form_one_situation_and_folds_balance() -> None:
     pairs = [("rec00", 0, 1, 2, 10, "rejected"), ("rec00", 1, 1, 3, 12, "rejected"), ("rec00", 2, 1, 4, 14, "accepted")]
     pairs += [("rec01", k, 100 + k, 500 + k, 10 + k, "accepted") for k in range(100)]
     rows = [{"scene_id": scene, "pair": pair, "t0_frame": t0, "gap": gap, "decision_frame": t0 + 3,
-             "conflict_frame": t0 + 4, "entry_arm": 0, "n_future_max": 25, "agent_id": agent, "partner_id": partner,
-             "role": role, "n_past": N_PAST, "n_future": N_FUTURE,
+             "conflict_frame": t0 + 4, "critical_frame": None, "entry_arm": 0, "n_future_max": 25, "agent_id": agent,
+             "partner_id": partner, "role": role, "n_past": N_PAST, "n_future": N_FUTURE,
              "input_key": 2 * (1000 * pair + agent) + (role == "ego")}
             for scene, pair, target, ego, t0, gap in pairs
             for agent, partner, role in ((target, ego, "target"), (ego, target, "ego"))]

@@ -28,6 +28,12 @@ circulating traffic unless given per location):
 * prediction time t0 = max(t_S, first frame with 15 past frames of both vehicles) (the framework's ``start``
   prediction time, relaxed to have a full past); kept when t0 < decision and both vehicles are recorded for 25
   more frames;
+* critical time t_crit (the framework's ``t_crit``, :func:`critical_frames`): the first frame in [t_S, decision)
+  at which the ego -- the vehicle offering the gap, for whose planning the prediction is made -- can no longer
+  stop before the conflict zone by braking at CRITICAL_DECELERATION (4 m/s^2): its distance to the zone is
+  below its braking distance v^2 / (2 a). A prediction made then comes too late to act on, so a situation with
+  t0 >= t_crit is dropped (the framework's default ``exclude_post_crit``); without such a frame t_crit is
+  undefined and nothing is dropped. The counts per recording are in the lineage (``excluded_after_critical``);
 * both target and ego are predicted: two samples with the same ``t0_frame`` and ``joint_id``; every other road
   user present at t0 is context (the tracks hold them with their classes);
 * horizon: ``n_future`` = 25 for every sample (the model's trained horizon); ``n_future_max`` is the horizon the
@@ -36,8 +42,8 @@ circulating traffic unless given per location):
   loader can read ``n_future_max`` future positions to test extrapolation.
 
 Extra sample columns: ``role`` (target / ego), ``partner_id`` (the other predicted vehicle), ``gap`` (accepted /
-rejected), ``decision_frame``, ``conflict_frame`` (t_C), ``entry_arm`` (index into the geometry's entry arms, -1 if
-none), ``n_future_max`` and ``situation_id``.
+rejected), ``decision_frame``, ``conflict_frame`` (t_C), ``critical_frame`` (t_crit, null where undefined),
+``entry_arm`` (index into the geometry's entry arms, -1 if none), ``n_future_max`` and ``situation_id``.
 
 Folds: a situation is one target's entering manoeuvre -- every gap it rejected and the one it accepted, each with
 its ego (``situation_id``). Situations are dealt round-robin into folds "0".."4" in a seeded random order and a
@@ -79,6 +85,9 @@ N_PAST, N_FUTURE, N_FUTURE_MAX = 15, 25, 35
 #: the decision horizon counts at most this many steps, plus HORIZON_MARGIN (Schumann et al.: 2 * n_past)
 DECISION_HORIZON_CAP = 2 * N_PAST
 HORIZON_MARGIN = 5
+#: braking deceleration (m/s^2) the ego is assumed to manage when the target cuts in: past the last frame at
+#: which it could still stop before the conflict zone (t_crit) a prediction is useless (Schumann et al.: a_brake)
+CRITICAL_DECELERATION = 4.0
 #: the levelX tools display rounD backgrounds downscaled by this factor: metres per pixel = orthoPxToMeter * 10
 BACKGROUND_SCALE_DOWN = 10
 #: fewer positions than this inside the background image means its scale convention does not fit the tracks
@@ -108,7 +117,7 @@ SAMPLE_SCHEMA = {"sample_id": pl.Int64, "scene_id": pl.String, "agent_id": pl.In
                  "n_past": pl.Int64, "n_future": pl.Int64, "group_id": pl.Int64, "split": pl.String,
                  "fold": pl.String, "joint_id": pl.Int64, "n_future_max": pl.Int64, "role": pl.String,
                  "partner_id": pl.Int64, "gap": pl.String, "decision_frame": pl.Int64, "conflict_frame": pl.Int64,
-                 "entry_arm": pl.Int64, "situation_id": pl.Int64}
+                 "critical_frame": pl.Int64, "entry_arm": pl.Int64, "situation_id": pl.Int64}
 #: scenes columns describing the roundabout geometry used -> RoundaboutGeometry field
 GEOMETRY_COLUMNS = {"centre_x": "centre_x", "centre_y": "centre_y", "inner_radius": "inner_radius",
                     "outer_radius": "outer_radius", "circulation": "direction", "geometry_source": "source"}
@@ -415,7 +424,8 @@ def _polar(frame: pl.DataFrame, geometry: RoundaboutGeometry) -> pl.DataFrame:
 
 def motor_tracks(tracks: pl.DataFrame) -> pl.DataFrame:
     """Rows of the vehicles that can be target or ego, sorted by (agent_id, frame)."""
-    return tracks.filter(pl.col("agent_class").is_in(MOTOR_CLASSES)).select("agent_id", "frame", "x", "y", "vx", "vy")
+    return tracks.filter(pl.col("agent_class").is_in(MOTOR_CLASSES)).select("agent_id", "frame", "x", "y", "vx", "vy",
+                                                                             "length")
 
 
 def _targets(motor: pl.DataFrame, geometry: RoundaboutGeometry) -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -439,7 +449,8 @@ def _targets(motor: pl.DataFrame, geometry: RoundaboutGeometry) -> tuple[pl.Data
 
 def extract_situations(tracks: pl.DataFrame, geometry: RoundaboutGeometry) -> pl.DataFrame:
     """Gap-acceptance situations of one recording (module docstring): one row per (target, ego, conflict frame)
-    with gap, t_A, t_C, decision frame, t0, n_future_max and entry arm."""
+    with gap, t_A, t_C, decision frame, t0, critical frame, n_future_max and entry arm. Situations whose t0 is at
+    or after the critical frame are still listed, marked ``after_critical``; the caller drops (and counts) them."""
     motor = _polar(motor_tracks(tracks), geometry)
     stats, targets = _targets(motor, geometry)
     outer = geometry.outer_radius
@@ -447,8 +458,9 @@ def extract_situations(tracks: pl.DataFrame, geometry: RoundaboutGeometry) -> pl
         pl.col("agent_id").alias("target_id"), "frame", pl.col("r").alias("r_t"), "phi", "frame_a", "theta_a")
     # an ego matters only inside the carriageway (its conflict-zone arrival and its open-gap frames lie there),
     # which keeps the pair table to a fraction of all co-present vehicle pairs
-    ego_rows = motor.filter(pl.col("r") <= outer).select(pl.col("agent_id").alias("ego_id"), "frame",
-                                                         pl.col("r").alias("r_e"), pl.col("theta").alias("theta_e"))
+    ego_rows = motor.filter(pl.col("r") <= outer).select(
+        pl.col("agent_id").alias("ego_id"), "frame", pl.col("r").alias("r_e"), pl.col("theta").alias("theta_e"),
+        circulating_speed(geometry).alias("v_e"), pl.col("length").alias("length_e"))
     pair = ["target_id", "ego_id"]
     psi = _wrap((pl.col("theta_e") - pl.col("phi")) * geometry.direction)
     contested = (pl.col("psi") > 0) & (pl.col("psi") < geometry.conflict_angle)
@@ -479,7 +491,7 @@ def _prediction_times(pairs: pl.DataFrame, situations: pl.DataFrame, spans: pl.D
     outer = geometry.outer_radius
     undecided = ((pl.col("r_e") <= outer) & (pl.col("r_e") >= outer - geometry.ego_band) & (pl.col("psi") < 0)
                  & (pl.col("r_t") > outer))
-    rows = (pairs.select("target_id", "ego_id", "frame", "r_t", "r_e", "psi")
+    rows = (pairs.select("target_id", "ego_id", "frame", "r_t", "r_e", "psi", "v_e", "length_e")
             .join(situations.select(*key, "decision_frame"), on=["target_id", "ego_id"])
             .filter(pl.col("frame") < pl.col("decision_frame"))
             .sort(*key, "frame")
@@ -490,6 +502,7 @@ def _prediction_times(pairs: pl.DataFrame, situations: pl.DataFrame, spans: pl.D
         pl.col("frame").shift(1) == pl.col("frame") - 1)
     starts = (rows.filter(pl.col("open") & ~(follows & pl.col("open").shift(1)).fill_null(False))
               .group_by(key).agg(pl.col("frame").max().alias("start_frame")))
+    critical = critical_frames(rows.join(starts, on=key), key, geometry)
     target_span = spans.rename({"agent_id": "target_id", "first_frame": "target_first", "last_frame": "target_last"})
     t0 = pl.max_horizontal("start_frame", pl.col("target_first") + N_PAST - 1, pl.col("ego_first") + N_PAST - 1)
     common_last = pl.min_horizontal("target_last", "ego_last")
@@ -498,17 +511,55 @@ def _prediction_times(pairs: pl.DataFrame, situations: pl.DataFrame, spans: pl.D
                                + HORIZON_MARGIN)
     arms = np.asarray(geometry.entry_angles, dtype=np.float64)
     timed = (situations.join(starts, on=key).join(target_span, on="target_id")
+             .join(critical, on=key, how="left")
              .with_columns(t0_frame=t0, common_last=common_last)
              .filter((pl.col("t0_frame") < pl.col("decision_frame"))
                      & (pl.col("t0_frame") + N_FUTURE <= pl.col("common_last")))
              .with_columns(n_future_max=pl.min_horizontal(needed, pl.col("common_last") - pl.col("t0_frame"),
-                                                          pl.lit(N_FUTURE_MAX)).cast(pl.Int64)))
+                                                          pl.lit(N_FUTURE_MAX)).cast(pl.Int64),
+                           after_critical=(pl.col("t0_frame") >= pl.col("critical_frame")).fill_null(False)))
     entry_arm = (_nearest_arm(timed.get_column("theta_a").to_numpy(), arms) if len(arms)
                  else np.full(timed.height, -1, dtype=np.int64))
     return (timed.with_columns(entry_arm=pl.Series(entry_arm, dtype=pl.Int64))
             .select("target_id", "ego_id", "gap", "frame_a", "conflict_frame", "decision_frame", "start_frame",
-                    "t0_frame", "n_future_max", "entry_arm")
+                    "critical_frame", "t0_frame", "after_critical", "n_future_max", "entry_arm")
             .sort("t0_frame", "target_id", "ego_id", "conflict_frame"))
+
+
+def circulating_speed(geometry: RoundaboutGeometry) -> pl.Expr:
+    """Speed (m/s) along the circulation direction: the velocity's component tangential to the roundabout, positive
+    when the vehicle moves with the traffic (needs the polar angle ``theta`` and ``vx`` / ``vy``)."""
+    return geometry.direction * (pl.col("vy") * pl.col("theta").cos() - pl.col("vx") * pl.col("theta").sin())
+
+
+def critical_frames(rows: pl.DataFrame, key: Sequence[str], geometry: RoundaboutGeometry,
+                    deceleration: float = CRITICAL_DECELERATION) -> pl.DataFrame:
+    """t_crit per situation: the first frame in [t_S, decision) at which the ego can no longer stop before the
+    conflict zone by braking at `deceleration`.
+
+    Why: the prediction serves the ego, which offers the gap and has to react if the target takes it. Once its
+    front is closer to the conflict zone than its braking distance v^2 / (2 * deceleration), yielding is no
+    longer possible, the situation is no longer a decision and predicting it is of no use (Schumann et al.'s
+    framework drops such prediction times; its gap-acceptance scenario brakes at a_brake = 4 m/s^2 and its
+    template takes the first such time after t_start, or t_start itself when the gap opens already critical).
+
+    The ego's distance is the arc from its position to the target's arm at its current radius, r_e * (-psi),
+    less half its length; its speed ``v_e`` is the velocity component along the circulation (negative speeds
+    count as standing). Inside the zone (0 <= psi < conflict_angle) the distance is negative, so the ego is
+    critical; further downstream (psi >= conflict_angle) it has passed and is not. (The framework measures the
+    arc on the lane centre, R - 1.75 m, for a 5 m vehicle, and takes the speed from the change of that distance
+    over 0.2 s; the tracks give each ego's own radius, length and velocity. Its rule, t_D < D / (2 a t_D) with
+    t_D = D / v, is the same inequality D < v^2 / (2 a).)
+
+    `rows` holds one row per situation (`key`) and frame with frame, start_frame, decision_frame, psi, r_e, v_e
+    and length_e. Returns `key` + ``critical_frame`` for the situations that have one.
+    """
+    distance = pl.col("r_e") * -pl.col("psi") - pl.col("length_e") / 2
+    braking = pl.col("v_e").clip(lower_bound=0.0) ** 2 / (2 * deceleration)
+    cannot_stop = (pl.col("psi") < geometry.conflict_angle) & (distance < braking)
+    window = (pl.col("frame") >= pl.col("start_frame")) & (pl.col("frame") < pl.col("decision_frame"))
+    return (rows.filter(window & cannot_stop)
+            .group_by(list(key)).agg(pl.col("frame").min().alias("critical_frame")))
 
 
 def _nearest_arm(angles: np.ndarray, arms: np.ndarray) -> np.ndarray:
@@ -520,7 +571,8 @@ def _nearest_arm(angles: np.ndarray, arms: np.ndarray) -> np.ndarray:
 def situation_samples(situations: pl.DataFrame, scene_id: str) -> pl.DataFrame:
     """Two samples per situation (target first, then ego) with a recording-local `pair` index."""
     base = situations.with_row_index("pair").with_columns(pl.col("pair").cast(pl.Int64), scene_id=pl.lit(scene_id))
-    common = ["scene_id", "pair", "t0_frame", "gap", "decision_frame", "conflict_frame", "entry_arm", "n_future_max"]
+    common = ["scene_id", "pair", "t0_frame", "gap", "decision_frame", "conflict_frame", "critical_frame", "entry_arm",
+              "n_future_max"]
     target = base.select(*common, pl.col("target_id").alias("agent_id"), pl.col("ego_id").alias("partner_id"),
                          pl.lit("target").alias("role"))
     ego = base.select(*common, pl.col("ego_id").alias("agent_id"), pl.col("target_id").alias("partner_id"),
@@ -608,9 +660,15 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
     step("scenarios")
     used = _geometry(geometry, meta, tracks, recording, warnings)
     situations = extract_situations(tracks, used) if used is not None else None
+    after_critical = 0
+    if situations is not None:
+        # the framework's exclusion of prediction times at or after t_crit (too late for the ego to act on)
+        after_critical = int(situations.get_column("after_critical").sum())
+        situations = situations.filter(~pl.col("after_critical"))
     if situations is not None and situations.height == 0:
+        dropped = f" ({after_critical} found too late, at or after their critical time)" if after_critical else ""
         _warn(f"{recording.path('tracks.csv')}: no gap-acceptance situation (a vehicle entering while another "
-              "circulates towards its arm); the recording contributes no samples", warnings)
+              f"circulates towards its arm){dropped}; the recording contributes no samples", warnings)
     step("groups")
     if situations is not None and situations.height:
         samples = situation_samples(situations, recording.scene_id)
@@ -628,7 +686,7 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
             else [])
     summary = {"recording": f"{recording.number:02d}", "location_id": meta.location_id, "raw_rows": raw_rows,
                "track_rows": tracks.height, "map": map_columns["map_path"], "geometry": geometry_values or None,
-               "situations": dict(gaps),
+               "situations": dict(gaps), "excluded_after_critical": after_critical,
                "needing_more_than_n_future": (int((situations.get_column("n_future_max") > N_FUTURE).sum())
                                               if situations is not None else 0)}
     return RecordingResult(tracks=tracks, scene=scene, samples=samples, summary=summary)
@@ -671,6 +729,8 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
         writer.finish(scene_table, samples, lineage={
             "raw": str(raw.resolve()), "n_past": N_PAST, "n_future": N_FUTURE, "n_future_max": N_FUTURE_MAX,
             "raw_frame_rates": sorted({scene["frame_rate"] for scene in scenes}),
+            "critical_deceleration": CRITICAL_DECELERATION,
+            "excluded_after_critical": sum(summary["excluded_after_critical"] for summary in summaries),
             "background_scale_down": BACKGROUND_SCALE_DOWN, "folds": FOLDS, "val_fraction": VAL_FRACTION,
             "split_seed": SPLIT_SEED, "recordings": summaries, "warnings": warnings})
     return out
