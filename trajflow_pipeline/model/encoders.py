@@ -109,26 +109,33 @@ class SocialGNN(nn.Module):
         return x
 
     def _sparse_rounds(self, x: Tensor, pos: Tensor, onehot: Tensor, mask: Tensor) -> Tensor:
-        """The same rounds over the real nodes only, as index operations on flattened nodes and edges."""
+        """The same rounds over the real nodes only, as index operations on flattened nodes and edges.
+
+        Gathers use ``index_select``, whose backward is an ``index_add``: plain advanced indexing backpropagates
+        through ``index_put`` with accumulation, which on CPU took half of a crowded ETH/UCY training step.
+        """
         batch, n = mask.shape
         flat_mask = mask.reshape(-1)
-        problem = torch.arange(batch, device=mask.device).repeat_interleave(n)[flat_mask]         # (K,)
+        real = flat_mask.nonzero().squeeze(1)                                                     # (K,)
+        problem = torch.div(real, n, rounding_mode="floor")                                       # (K,)
         node_id = torch.cumsum(flat_mask.long(), 0).reshape(batch, n) - 1
         p_idx, a_idx, b_idx = (mask[:, :, None] & mask[:, None, :]).nonzero(as_tuple=True)
         receiver_id, sender_id = node_id[p_idx, a_idx], node_id[p_idx, b_idx]                     # (E,)
-        nodes = x.reshape(batch * n, -1)[flat_mask]
-        flat_pos, flat_onehot = pos.reshape(batch * n, 2)[flat_mask], onehot.reshape(batch * n, -1)[flat_mask]
-        edge = self._edge_features(flat_onehot[sender_id], flat_onehot[receiver_id],
-                                   flat_pos[receiver_id] - flat_pos[sender_id])
-        senders = mask.sum(1).to(x.dtype)[problem][:, None]                                      # (K, 1)
+        nodes = x.reshape(batch * n, -1).index_select(0, real)
+        flat_pos = pos.reshape(batch * n, 2).index_select(0, real)
+        flat_onehot = onehot.reshape(batch * n, -1).index_select(0, real)
+        edge = self._edge_features(flat_onehot.index_select(0, sender_id), flat_onehot.index_select(0, receiver_id),
+                                   flat_pos.index_select(0, receiver_id) - flat_pos.index_select(0, sender_id))
+        senders = mask.sum(1).to(x.dtype).index_select(0, problem)[:, None]                      # (K, 1)
         edge_terms = self.msg_edge(edge).chunk(len(self.update), dim=-1)
         for sender, receiver, edge_term, out, update in zip(self.msg_sender, self.msg_receiver, edge_terms,
                                                             self.msg_out, self.update):
-            hidden = F.relu(sender(nodes)[sender_id] + receiver(nodes)[receiver_id] + edge_term)
+            hidden = F.relu(sender(nodes).index_select(0, sender_id) + receiver(nodes).index_select(0, receiver_id)
+                            + edge_term)
             pooled = torch.zeros_like(nodes).index_add_(0, receiver_id, hidden)
             message = F.linear(pooled, out.weight) + senders * out.bias
             nodes = update(torch.cat((nodes, message), dim=-1)) + nodes
-        return x.new_zeros(batch * n, x.shape[-1]).masked_scatter(flat_mask[:, None], nodes).reshape(batch, n, -1)
+        return x.new_zeros(batch * n, x.shape[-1]).index_copy(0, real, nodes).reshape(batch, n, -1)
 
 
 class MapEncoder(nn.Module):
