@@ -34,12 +34,16 @@ N_PAST, N_FUTURE, STEP = 8, 12, 10
 TOLERANCE = 1e-3
 
 
-def pandas_reference(all_data: Path, out: Path) -> int:
-    """The same job done the straightforward way: pandas parsing, a Python loop per pedestrian for the windows,
-    and the tracks and samples tables written to Parquet. Returns the number of samples."""
-    tracks, samples = [], []
+def _read_and_find_windows(all_data: Path, checked: bool) -> tuple[pd.DataFrame, list[tuple[str, int, int]]]:
+    """Both references' common part: each sequence parsed with pandas (its input checked when `checked`), tracks
+    columns added, and the strict windows found with a Python loop per pedestrian. Returns the tracks table and
+    (scene, pedestrian, t0 frame) per window."""
+    tracks, windows = [], []
     for name in SEQUENCES:
-        frame = pd.read_csv(all_data / f"{name}.txt", sep=r"\s+", header=None, names=["frame", "ped", "x", "y"])
+        path = all_data / f"{name}.txt"
+        frame = pd.read_csv(path, sep=r"\s+", header=None, names=["frame", "ped", "x", "y"])
+        if checked:
+            _check_input(frame, path)
         frame["scene_id"] = name
         frame["agent_id"] = frame["ped"].astype("int64")
         frame["frame"] = (frame["frame"] // STEP).astype("int64")
@@ -50,40 +54,35 @@ def pandas_reference(all_data: Path, out: Path) -> int:
             present = set(track["frame"].tolist())
             for f in sorted(present):
                 if all(f + k in present for k in range(-(N_PAST - 1), N_FUTURE + 1)):
-                    samples.append({"scene_id": name, "agent_id": ped, "t0_frame": f, "n_past": N_PAST,
-                                    "n_future": N_FUTURE})
-    table = pd.concat(tracks)[["scene_id", "agent_id", "agent_type", "frame", "t", "x", "y"]]
+                    windows.append((name, ped, f))
+    return pd.concat(tracks)[["scene_id", "agent_id", "agent_type", "frame", "t", "x", "y"]], windows
+
+
+def _check_input(frame: pd.DataFrame, path: Path) -> None:
+    """The ingest's input checks: finite numbers, whole frames and ids on the frame step, no duplicated rows."""
+    if not np.isfinite(frame[["frame", "ped", "x", "y"]].to_numpy(dtype=float)).all():
+        raise ValueError(f"{path}: non-finite values")
+    if (frame["frame"] % 1 != 0).any() or (frame["ped"] % 1 != 0).any() or (frame["frame"] % STEP != 0).any():
+        raise ValueError(f"{path}: fractional frame / id or frame off the step")
+    if frame.duplicated(["frame", "ped"]).any():
+        raise ValueError(f"{path}: duplicated rows")
+
+
+def pandas_reference(all_data: Path, out: Path) -> int:
+    """Windows only: pandas parsing, a Python loop per pedestrian for the windows, and the tracks and samples
+    tables written to Parquet. Returns the number of samples."""
+    table, windows = _read_and_find_windows(all_data, checked=False)
+    samples = pd.DataFrame(windows, columns=["scene_id", "agent_id", "t0_frame"]).assign(n_past=N_PAST,
+                                                                                        n_future=N_FUTURE)
     out.mkdir(parents=True)
     table.to_parquet(out / "tracks.parquet")
-    pd.DataFrame(samples).to_parquet(out / "samples.parquet")
+    samples.to_parquet(out / "samples.parquet")
     return len(samples)
 
 
 def pandas_reference_same_tables(all_data: Path, out: Path) -> tuple[int, int]:
     """The tables `ingest eth-ucy` writes, made the straightforward way. Returns (samples, groups)."""
-    tracks, samples = [], []
-    for name in SEQUENCES:
-        path = all_data / f"{name}.txt"
-        frame = pd.read_csv(path, sep=r"\s+", header=None, names=["frame", "ped", "x", "y"])
-        values = frame[["frame", "ped", "x", "y"]].to_numpy(dtype=float)
-        if not np.isfinite(values).all():
-            raise ValueError(f"{path}: non-finite values")
-        if (frame["frame"] % 1 != 0).any() or (frame["ped"] % 1 != 0).any() or (frame["frame"] % STEP != 0).any():
-            raise ValueError(f"{path}: fractional frame / id or frame off the step")
-        if frame.duplicated(["frame", "ped"]).any():
-            raise ValueError(f"{path}: duplicated rows")
-        frame["scene_id"] = name
-        frame["agent_id"] = frame["ped"].astype("int64")
-        frame["frame"] = (frame["frame"] // STEP).astype("int64")
-        frame["t"] = frame["frame"] * 0.4
-        frame["agent_type"] = "pedestrian"
-        tracks.append(frame.sort_values(["agent_id", "frame"]))
-        for ped, track in frame.groupby("agent_id"):
-            present = set(track["frame"].tolist())
-            for f in sorted(present):
-                if all(f + k in present for k in range(-(N_PAST - 1), N_FUTURE + 1)):
-                    samples.append((name, ped, f))
-    table = pd.concat(tracks)[["scene_id", "agent_id", "agent_type", "frame", "t", "x", "y"]]
+    table, samples = _read_and_find_windows(all_data, checked=True)
     table = table.sort_values(["scene_id", "agent_id", "frame"])
     scenes = pd.DataFrame({"scene_id": list(SEQUENCES), "location": list(SEQUENCES.values())})
     scenes["fold"] = scenes["location"].where(scenes["location"].isin(FOLDS))
