@@ -78,19 +78,24 @@ def joint_min(per_draw: np.ndarray, groups: Groups) -> np.ndarray:
     return (sums / groups.counts[:, None]).min(axis=1)
 
 
+def _joint_min_displacement(pred: np.ndarray, gt: np.ndarray, joint_key: np.ndarray | None, *, k: int,
+                            t_eval: int | None, horizon: np.ndarray | None,
+                            final: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Joint min over draws of the group-mean ADE (or FDE when `final`): (group keys (G,), values (G,))."""
+    ade, fde = ade_fde_per_draw(pred, gt, k=k, t_eval=t_eval,
+                                horizon=joint_horizon(horizon, joint_key, np.shape(pred)[0]))
+    per_draw = fde if final else ade
+    groups = group_agents(joint_key, per_draw.shape[0], "joint_key")
+    return groups.keys, joint_min(per_draw, groups)
+
+
 def min_ade_joint(pred: np.ndarray, gt: np.ndarray, joint_key: np.ndarray | None, *, k: int = DEFAULT_K,
                   t_eval: int | None = None, horizon: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Joint minADE_K per group of `joint_key`: returns (group keys (G,), values (G,)), keys ascending."""
-    ade, _ = ade_fde_per_draw(pred, gt, k=k, t_eval=t_eval,
-                              horizon=joint_horizon(horizon, joint_key, np.shape(pred)[0]))
-    groups = group_agents(joint_key, ade.shape[0], "joint_key")
-    return groups.keys, joint_min(ade, groups)
+    return _joint_min_displacement(pred, gt, joint_key, k=k, t_eval=t_eval, horizon=horizon, final=False)
 
 
 def min_fde_joint(pred: np.ndarray, gt: np.ndarray, joint_key: np.ndarray | None, *, k: int = DEFAULT_K,
                   t_eval: int | None = None, horizon: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Joint minFDE_K per group of `joint_key`: returns (group keys (G,), values (G,)), keys ascending."""
-    _, fde = ade_fde_per_draw(pred, gt, k=k, t_eval=t_eval,
-                              horizon=joint_horizon(horizon, joint_key, np.shape(pred)[0]))
-    groups = group_agents(joint_key, fde.shape[0], "joint_key")
-    return groups.keys, joint_min(fde, groups)
+    return _joint_min_displacement(pred, gt, joint_key, k=k, t_eval=t_eval, horizon=horizon, final=True)
