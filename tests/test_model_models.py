@@ -196,3 +196,22 @@ def test_gnn_dense_and_sparse_message_passing_agree() -> None:
         gradients.append((x_leaf.grad[mask], pos_leaf.grad[mask], gnn.msg_edge.weight.grad.clone()))
     for dense_grad, sparse_grad in zip(*gradients):
         assert torch.allclose(dense_grad, sparse_grad, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])
+def test_flow_standardize_adds_a_closed_form_stage(name: str) -> None:
+    batch = crowd_batch(40, neighbours=3)
+    plain = _model(name)
+    model = _model(name, flow_standardize=True)
+    assert model.stages == (*plain.stages[:-1], "standardize", "flow")
+    assert "standardize" in model.closed_form_stages and model.stage_parameters("standardize") == []
+    with pytest.raises(ValueError, match="unknown stage"):
+        plain.stage_loss("standardize", batch)
+    model.fit_stage("standardize", batch)
+    targets = model.targets(model.normalize(batch))
+    assert torch.allclose(model.flow.shift, targets.mean(0), atol=1e-5)
+    assert torch.allclose(model.flow.scale, targets.std(0), atol=1e-5)
+    # The stage's loss is the NLL of the fitted diagonal Gaussian.
+    gaussian = torch.distributions.Normal(targets.mean(0), targets.std(0))
+    expected = -gaussian.log_prob(targets).sum(-1).mean()
+    assert torch.allclose(model.stage_loss("standardize", batch), expected, atol=1e-4)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from trajflow_pipeline.model.config import MODEL_NAMES
+from trajflow_pipeline.model.config import MODEL_NAMES, load_config
 from trajflow_pipeline.stages.experiment import INGESTS, load_experiment, run_experiment
 from trajflow_pipeline.stages.report import report
 
@@ -58,3 +58,21 @@ def test_synthetic_quick_runs_end_to_end(tmp_path: Path) -> None:
     for model in ("trajflow", "flomo", "cv"):
         assert model.lower() in markdown.lower()
     assert (out / "report.html").stat().st_size > 10_000
+
+
+OURS = sorted((CONFIGS.parent / "ours").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", OURS, ids=lambda p: p.stem)
+def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Path) -> None:
+    """configs/ours: a paper protocol (same data, runs and evaluation) with model changes of ours."""
+    ours = load_experiment(path)
+    paper = load_experiment(CONFIGS / f"{path.stem.split('_standardized')[0]}.toml")
+    for key in ("data_path", "ingest", "ingest_options", "models", "folds", "seeds", "eval_options"):
+        assert getattr(ours, key) == getattr(paper, key), key
+    assert ours.train_overrides and all(o.startswith("model.flow_") for o in ours.train_overrides)
+    load_config(overrides=list(ours.train_overrides))      # every override is a real, valid key
+
+
+def test_there_are_configs_of_ours() -> None:
+    assert OURS, "configs/ours holds our variants of the paper protocols"

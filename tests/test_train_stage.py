@@ -243,3 +243,32 @@ def test_trains_on_a_real_dataset_directory(synthetic_dataset: Path, tmp_path: P
     assert trajectories.shape == (4, 3, 20, 2) and np.isfinite(log_lik.numpy()).all()
     with pytest.raises(UsageError, match="no folds"):
         train(synthetic_dataset, tmp_path / "run2", fold="0", model="cv", quiet=True)
+
+
+def test_flow_standardize_is_fitted_logged_saved_and_resumed(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 80, 24)
+    options = dict(model="trajflow-no-ae", quiet=True, overrides=[
+        *FAST, *TINY_MODEL, "model.flow_standardize=true", "model.flow_tail_bound=5", "train.flow_max_epochs=2",
+        "train.flow_batch_size=32"])
+    whole = train(tmp_path / "data", tmp_path / "whole", **options)
+    log = log_of(whole)
+    assert log.get_column("stage").unique(maintain_order=True).to_list() == ["standardize", "flow"]
+    model = load_model(whole)
+    assert model.stages == ("standardize", "flow") and bool((model.flow.scale != 1).all())
+
+    class Killed(Exception):
+        pass
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == ("flow", 1):
+            raise Killed()
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(Killed):
+        train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    a, b = final_weights(whole), final_weights(tmp_path / "parts")
+    assert a.keys() == b.keys() and {"flow.shift", "flow.scale"} <= a.keys()
+    for name in a:
+        assert torch.equal(a[name], b[name]), name

@@ -46,6 +46,10 @@ class ModelConfig:
     flow_bins: int = 8
     flow_tail_bound: float = 15.0
     flow_hidden: tuple[int, ...] = (32, 32, 32, 32, 32)
+    #: Not in the paper: standardize the flow's input per feature (training mean / std, fitted in a closed-form
+    #: stage "standardize" before the flow trains), so that flow_tail_bound is in standard deviations and the
+    #: splines' bins cover the data whatever its units (see ConditionalSplineFlow).
+    flow_standardize: bool = False
     # Past encoder of the target: Linear(2->embed)+ReLU -> GRU(embed, hidden, layers) -> Linear(hidden->out).
     past_embed: int = 16
     past_hidden: int = 16

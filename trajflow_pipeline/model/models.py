@@ -5,6 +5,7 @@ Common interface (:class:`TrajectoryModel`):
 * ``stages`` -- the training stages in order; ``stage_loss(stage, batch)`` is what that stage minimises and
   ``stage_parameters(stage)`` what it trains (everything else is frozen while it runs). A stage listed in
   ``closed_form_stages`` is fitted in one pass by ``fit_stage(stage, batch)`` instead of by gradient descent.
+  The flow models insert the closed-form stage ``standardize`` before ``flow`` when ``model.flow_standardize``.
 * ``loss(batch)`` -- the final stage's loss (the flow NLL for the flow models).
 * ``log_likelihood(batch)`` -- log-density of each problem's ground-truth future under the model, in the space
   named by ``log_lik_space``.
@@ -70,8 +71,9 @@ class TrajectoryModel(nn.Module, abc.ABC):
     """Base class: normalisation, the stage protocol and the sampling contract (see the module docstring)."""
 
     name: ClassVar[str]
-    stages: ClassVar[tuple[str, ...]]
-    closed_form_stages: ClassVar[tuple[str, ...]] = ()
+    #: the family's stages; an instance may extend them from its config (FlowModel: "standardize")
+    stages: tuple[str, ...]
+    closed_form_stages: tuple[str, ...] = ()
     log_lik_space: ClassVar[str]
     #: how steps past the trained horizon are made: AUTOREGRESSIVE, CV_EXTENSION or NATIVE (module docstring)
     beyond_horizon: ClassVar[str] = CV_EXTENSION
@@ -137,9 +139,15 @@ def extend_constant_velocity(displacements: Tensor, steps: int) -> Tensor:
 
 
 class FlowModel(TrajectoryModel):
-    """A conditional flow over a per-problem target vector, conditioned on the context encoders."""
+    """A conditional flow over a per-problem target vector, conditioned on the context encoders.
+
+    With ``flow_standardize`` the stage ``standardize`` (closed form, after any autoencoder stage) sets the flow's
+    input standardization from the training targets; its loss is the NLL of the diagonal Gaussian with those
+    means and standard deviations, the floor the flow stage has to beat.
+    """
 
     log_lik_space = "scaled_displacements"
+    STANDARDIZE = "standardize"
 
     def __init__(self, config: ModelConfig, spec: DataSpec, features: int, seed: int = 0) -> None:
         super().__init__(config, spec)
@@ -154,7 +162,28 @@ class FlowModel(TrajectoryModel):
         self.context = ContextEncoder(past=past, social=social, map_encoder=map_encoder)
         self.flow = ConditionalSplineFlow(features, self.context.out_features, layers=config.flow_layers,
                                           bins=config.flow_bins, tail_bound=config.flow_tail_bound,
-                                          hidden=tuple(config.flow_hidden), seed=seed)
+                                          hidden=tuple(config.flow_hidden), seed=seed,
+                                          standardize=config.flow_standardize)
+        if config.flow_standardize:
+            self.stages = (*self.stages[:-1], self.STANDARDIZE, self.stages[-1])
+            self.closed_form_stages = (*self.closed_form_stages, self.STANDARDIZE)
+
+    def fit_stage(self, stage: str, batch: SceneBatch) -> None:
+        if stage != self.STANDARDIZE or not self.config.flow_standardize:
+            super().fit_stage(stage, batch)
+            return
+        self._require_future(batch)
+        chunks = [self.targets(self.normalize(batch.index(slice(i, i + 4096))))
+                  for i in range(0, len(batch), 4096)]
+        self.flow.fit_standardization(torch.cat(chunks))
+
+    def standardized_gaussian_nll(self, batch: SceneBatch) -> Tensor:
+        """Mean NLL of the batch's targets under N(shift, diag(scale^2)): the standardize stage's loss."""
+        self._require_future(batch)
+        x = self.targets(self.normalize(batch))
+        u = (x - self.flow.shift) / self.flow.scale
+        per_dim = 0.5 * u ** 2 + self.flow.scale.log() + 0.5 * math.log(2 * math.pi)
+        return per_dim.sum(-1).mean()
 
     @abc.abstractmethod
     def targets(self, norm: Normalized) -> Tensor:
@@ -166,6 +195,20 @@ class FlowModel(TrajectoryModel):
 
     def flow_parameters(self) -> list[nn.Parameter]:
         return [*self.context.parameters(), *self.flow.parameters()]
+
+    def stage_parameters(self, stage: str) -> list[nn.Parameter]:
+        if stage == "flow":
+            return self.flow_parameters()
+        if stage in self.closed_form_stages:
+            return []
+        raise ValueError(f"unknown stage {stage!r} for {self.name}")
+
+    def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
+        if stage == "flow":
+            return self.flow_nll(batch)
+        if stage == self.STANDARDIZE and stage in self.stages:
+            return self.standardized_gaussian_nll(batch)
+        raise ValueError(f"unknown stage {stage!r} for {self.name}")
 
     def flow_nll(self, batch: SceneBatch) -> Tensor:
         """Mean negative log-likelihood of the batch's targets under the conditional flow."""
@@ -207,17 +250,13 @@ class TrajFlow(FlowModel):
     def stage_parameters(self, stage: str) -> list[nn.Parameter]:
         if stage == "autoencoder":
             return list(self.autoencoder.parameters())
-        if stage == "flow":
-            return self.flow_parameters()
-        raise ValueError(f"unknown stage {stage!r} for {self.name}")
+        return super().stage_parameters(stage)
 
     def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
         if stage == "autoencoder":
             self._require_future(batch)
             return self.autoencoder.reconstruction_loss(self.normalize(batch).future, self.config.alpha)
-        if stage == "flow":
-            return self.flow_nll(batch)
-        raise ValueError(f"unknown stage {stage!r} for {self.name}")
+        return super().stage_loss(stage, batch)
 
     def targets(self, norm: Normalized) -> Tensor:
         # The autoencoder is frozen while the flow trains: its latents are fixed targets.
@@ -236,16 +275,6 @@ class TrajFlowNoAE(FlowModel):
 
     def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
         super().__init__(config, spec, 2 * spec.n_future, seed)
-
-    def stage_parameters(self, stage: str) -> list[nn.Parameter]:
-        if stage != "flow":
-            raise ValueError(f"unknown stage {stage!r} for {self.name}")
-        return self.flow_parameters()
-
-    def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
-        if stage != "flow":
-            raise ValueError(f"unknown stage {stage!r} for {self.name}")
-        return self.flow_nll(batch)
 
     def targets(self, norm: Normalized) -> Tensor:
         return norm.future.flatten(1)
