@@ -16,7 +16,7 @@ from trajflow_pipeline.report.figures import kde_colours, plot_min_ade_k, relati
 from trajflow_pipeline.report.paper import METRICS, metric_columns
 from trajflow_pipeline.report.render import to_html, to_markdown
 from trajflow_pipeline.report.scenes import choose_examples
-from trajflow_pipeline.report.tables import format_mean_std, summary_stats
+from trajflow_pipeline.report.tables import comparisons, format_mean_std, summary_stats
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -93,3 +93,23 @@ def test_extended_horizon_metrics_get_labelled_columns_after_the_standard_ones()
     assert labels["min_ade_ext"] == "minADE (to own horizon)"
     assert labels["nll_ext_long"] == "NLL indep (to own horizon, long samples only)"
     assert labels["custom"] == "custom"
+
+
+def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
+    runs = {("trajflow", 0): (-41.0, 0.40, 0.10), ("trajflow", 1): (-39.0, 0.20, 0.12),
+            ("trajflow-no-ae", 0): (-41.5, 0.50, 0.09), ("flomo", 0): (-38.0, 0.70, 0.15),
+            ("cv", 0): (16.0, 1.0, 0.65)}
+    metrics = pl.DataFrame(
+        [{"dataset": "synthetic_bimodal", "model": model, "run": f"{model}-s{seed}", "metric": metric, "value": value}
+         for (model, seed), values in runs.items() for metric, value in zip(("nll", "jsd", "min_ade"), values)])
+    lines = comparisons(summary_stats(metrics))
+    # TrajFlow's means: NLL -40.0, JSD 0.30 (minADE is not a claimed metric, so it is not compared).
+    assert lines == [
+        "NLL indep vs TrajFlow w/o AE: NOT BETTER — our TrajFlow -40.00, TrajFlow w/o AE -41.50.",
+        "JSD vs TrajFlow w/o AE: BETTER — our TrajFlow 0.300, TrajFlow w/o AE 0.500.",
+        "NLL indep vs FloMo: BETTER — our TrajFlow -40.00, FloMo -38.00.",
+        "JSD vs FloMo: BETTER — our TrajFlow 0.300, FloMo 0.700.",
+        "NLL indep vs Constant velocity: BETTER — our TrajFlow -40.00, Constant velocity 16.00.",
+        "JSD vs Constant velocity: BETTER — our TrajFlow 0.300, Constant velocity 1.000.",
+    ]
+    assert comparisons(summary_stats(metrics.filter(pl.col("model") == "flomo"))) == []

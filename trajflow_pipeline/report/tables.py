@@ -1,5 +1,5 @@
 """Aggregate per-run metric values into the report's tables: mean ± std over folds and seeds, per-fold breakdowns,
-and the paper targets.
+the paper targets and how our TrajFlow compares with our other models.
 
 The input is :func:`collect.metrics_frame`: one aggregate value per (run, metric). Standard deviations are
 population standard deviations over runs (ddof = 0, numpy's default, which is how mean ± std over seeds /
@@ -151,4 +151,27 @@ def targets(stats: pl.DataFrame, dataset: str) -> list[str]:
             lines.append(f"{spec.label}: NOT MET — our TrajFlow mean is {value} (paper {target:g}).")
         else:
             lines.append(f"{spec.label}: NOT MET — our TrajFlow {value:.4g} > paper {target:g}.")
+    return lines
+
+
+#: The paper's claims about TrajFlow against the other models: better NLL and JSD than its ablation and FloMo.
+CLAIMED_BETTER_ON = ("nll", "jsd")
+
+
+def comparisons(stats: pl.DataFrame) -> list[str]:
+    """Plain sentences: is our TrajFlow mean better (lower) than each other model's, on each metric the paper
+    claims it is (NLL, JSD) and both were evaluated on? `stats` is :func:`summary_stats` for one dataset."""
+    mean = _pivot(stats, "model", "mean")
+    others = [m for m in model_order(stats.get_column("model").to_list()) if m != OUR_TRAJFLOW]
+    specs = [spec for spec in metric_columns(stats.get_column("metric").to_list()) if spec.name in CLAIMED_BETTER_ON]
+    lines = []
+    for other in others:
+        for spec in specs:
+            ours, theirs = mean.get((OUR_TRAJFLOW, spec.name)), mean.get((other, spec.name))
+            if ours is None or theirs is None:
+                continue
+            better = math.isfinite(ours) and (not math.isfinite(theirs) or ours < theirs)
+            lines.append(f"{spec.label} vs {model_label(other)}: {'BETTER' if better else 'NOT BETTER'} — our TrajFlow "
+                         f"{format_value(ours, spec.decimals)}, {model_label(other)} "
+                         f"{format_value(theirs, spec.decimals)}.")
     return lines

@@ -35,7 +35,7 @@ from ..report.figures import plot_density, plot_examples, plot_min_ade_k, plot_t
 from ..report.paper import dataset_label, dataset_order, model_label, model_order
 from ..report.render import slug, to_html, to_markdown
 from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
-from ..report.tables import fold_stats, fold_tables, summary_stats, summary_table, targets
+from ..report.tables import comparisons, fold_stats, fold_tables, summary_stats, summary_table, targets
 from ..util.atomic import atomic_directory
 from ..util.progress import make_progress
 
@@ -223,6 +223,10 @@ def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_f
     blocks += [Heading(3, "Results"), summary_table(stats, dataset, _common([r.k for r in runs])),
                Heading(3, "Paper targets (our TrajFlow mean vs the paper's, lower is better)"),
                Bullets(tuple(targets(stats, dataset)))]
+    versus = comparisons(stats)
+    if versus:
+        blocks += [Heading(3, "TrajFlow against our other models (the paper claims better NLL and JSD)"),
+                   Bullets(tuple(versus))]
     if any(r.fold is not None for r in runs):
         blocks.append(Heading(3, "Per fold"))
         for spec, table in fold_tables(per_fold.filter(pl.col("dataset") == dataset)):
