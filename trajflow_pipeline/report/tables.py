@@ -171,7 +171,8 @@ def comparisons(stats: pl.DataFrame) -> list[str]:
             if ours is None or theirs is None:
                 continue
             better = math.isfinite(ours) and (not math.isfinite(theirs) or ours < theirs)
-            lines.append(f"{spec.label} vs {model_label(other)}: {'BETTER' if better else 'NOT BETTER'} — our TrajFlow "
+            verdict = "BETTER" if better else "NOT BETTER"
+            lines.append(f"{spec.label} vs {model_label(other)}: {verdict} — our TrajFlow "
                          f"{format_value(ours, spec.decimals)}, {model_label(other)} "
                          f"{format_value(theirs, spec.decimals)}.")
     return lines
