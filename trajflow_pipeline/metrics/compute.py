@@ -49,7 +49,8 @@ def check_metric_names(metrics: Sequence[str]) -> tuple[str, ...]:
     return tuple(m for m in METRIC_NAMES if m in set(metrics))
 
 
-def _rows(metric: str, values: np.ndarray, agent_index: np.ndarray, group_key: np.ndarray | None) -> pl.DataFrame:
+def metric_rows(metric: str, values: np.ndarray, agent_index: np.ndarray,
+                group_key: np.ndarray | None) -> pl.DataFrame:
     """Per-unit rows of one metric followed by its aggregate (mean) row."""
     n = values.size
     if n == 0:
@@ -111,20 +112,20 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
             "min_ade_joint": lambda: (joint_min(joint_ade, joint), _first_members(joint, joint.keys), joint.keys),
             "min_fde_joint": lambda: (joint_min(joint_fde, joint), _first_members(joint, joint.keys), joint.keys),
         }
-        frames += [_rows(m, *per_metric[m]()) for m in wanted if m in per_metric]
+        frames += [metric_rows(m, *per_metric[m]()) for m in wanted if m in per_metric]
     density_wanted = {m for m in wanted if m in _DENSITY}
     if density_wanted:
         res = density_metrics(pred, gt, metrics=density_wanted, joint_key=joint_key, group_id=group_id,
                               horizon=steps, pool_groups=pool_groups, max_pooled=max_pooled, workers=workers,
                               quiet=quiet, seed=seed)
         if res.nll is not None:
-            frames.append(_rows("nll", res.nll, agents, None))
+            frames.append(metric_rows("nll", res.nll, agents, None))
         if res.nll_joint is not None and res.nll_joint_keys is not None:
-            frames.append(_rows("nll_joint", res.nll_joint, _first_members(joint, res.nll_joint_keys),
+            frames.append(metric_rows("nll_joint", res.nll_joint, _first_members(joint, res.nll_joint_keys),
                                 res.nll_joint_keys))
         if res.jsd is not None and res.jsd_keys is not None:
             first = res.jsd_agents if res.jsd_agents is not None else _first_members(ids, res.jsd_keys)
-            frames.append(_rows("jsd", res.jsd, first, res.jsd_keys))
+            frames.append(metric_rows("jsd", res.jsd, first, res.jsd_keys))
     table = pl.concat(frames, how="vertical") if frames else pl.DataFrame(schema=SCHEMA)
     if table.height == 0:
         raise UsageError(f"nothing to report for metrics {list(wanted)}: jsd needs a group_id with groups of "
