@@ -11,12 +11,15 @@ import torch
 import torch.multiprocessing as mp
 
 from trajflow_pipeline import data as data_module
+from trajflow_pipeline.model import load_model
 from trajflow_pipeline.model.toy import bimodal_batch
 from train_fakes import FakeProblems
 
 OVERRIDES = ["train.ae_min_epochs=0", "train.flow_min_epochs=0", "train.ae_max_epochs=2",
              "train.flow_max_epochs=2", "train.ae_batch_size=16", "train.flow_batch_size=16", "model.flow_layers=4",
-             "model.flow_hidden=[16, 16]", "model.gnn_layers=2"]
+             "model.flow_hidden=[16, 16]", "model.gnn_layers=2",
+             # the closed-form standardize stage runs on every rank; its buffers must agree too
+             "model.flow_standardize=true"]
 
 
 def _fake_load_problems(dataset_dir: object, fold: str | None = None, split: str = "train") -> FakeProblems:
@@ -49,3 +52,4 @@ def test_two_gloo_processes_end_with_identical_weights(tmp_path: Path) -> None:
     digests = info["rank_weight_digests"]
     assert len(digests) == 2 and digests[0] == digests[1] and info["ranks_consistent"]
     assert (run / "final" / "model.safetensors").is_file()
+    assert load_model(run).stages == ("autoencoder", "standardize", "flow")
