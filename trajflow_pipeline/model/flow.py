@@ -256,6 +256,11 @@ class ConditionalSplineFlow(nn.Module):
         self.shift.copy_(x.mean(dim=0).to(self.shift))
         self.scale.copy_(torch.where(std > 1e-6, std, torch.ones_like(std)).to(self.scale))
 
+    def standardization_log_prob(self, x: Tensor) -> Tensor:
+        """log N(x; shift, diag(scale^2)) (B,): the diagonal Gaussian the standardization alone describes, the
+        baseline the couplings improve on (N(0, I) without a standardization)."""
+        return standard_normal_log_prob(self._in(x)) + self._log_scale()
+
     def _log_scale(self) -> Tensor | float:
         """log |det| of the standardizing map x -> u (0 without one)."""
         return -self.scale.log().sum() if self.standardize else 0.0

@@ -180,10 +180,7 @@ class FlowModel(TrajectoryModel):
     def standardized_gaussian_nll(self, batch: SceneBatch) -> Tensor:
         """Mean NLL of the batch's targets under N(shift, diag(scale^2)): the standardize stage's loss."""
         self._require_future(batch)
-        x = self.targets(self.normalize(batch))
-        u = (x - self.flow.shift) / self.flow.scale
-        per_dim = 0.5 * u ** 2 + self.flow.scale.log() + 0.5 * math.log(2 * math.pi)
-        return per_dim.sum(-1).mean()
+        return -self.flow.standardization_log_prob(self.targets(self.normalize(batch))).mean()
 
     @abc.abstractmethod
     def targets(self, norm: Normalized) -> Tensor:

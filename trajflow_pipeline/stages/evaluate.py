@@ -281,15 +281,11 @@ def _take(key: np.ndarray | None, agents: np.ndarray) -> np.ndarray | None:
     return None if key is None else np.asarray(key)[agents]
 
 
-def _group_index(key: np.ndarray | None, n_agents: int) -> np.ndarray:
-    """(A,) dense group index of each agent under `key` (None: each agent its own group)."""
-    return np.arange(n_agents) if key is None else np.unique(np.asarray(key), return_inverse=True)[1].ravel()
-
-
 def _recompute_set(long: np.ndarray, joint_key: np.ndarray | None, group_id: np.ndarray | None) -> np.ndarray:
     """(A,) bool: the long agents and, to a fixed point, every agent sharing a joint group or an identical-input
     group with one of them. Outside it, every fit (own, pooled, joint, JSD) sees only n_future steps."""
-    indices = [_group_index(key, long.size) for key in (joint_key, group_id)]
+    indices = [group_agents(key, long.size, name).inverse.ravel()
+               for key, name in ((joint_key, "joint_key"), (group_id, "group_id"))]
     redo = long.astype(bool)
     while True:
         grown = np.logical_or.reduce([np.bincount(index, weights=redo)[index] > 0 for index in indices])
@@ -314,7 +310,7 @@ def _has_rows(common: dict[str, Any], horizon: np.ndarray) -> bool:
     with two members of one horizon (JSD pools only members sharing their horizon)."""
     if set(check_metric_names(common["metrics"])) != {"jsd"}:
         return True
-    ids = _group_index(common["group_id"], horizon.size)
+    ids = group_agents(common["group_id"], horizon.size, "group_id").inverse.ravel()
     return bool((np.unique(np.stack([ids, horizon]), axis=1, return_counts=True)[1] >= 2).any())
 
 
