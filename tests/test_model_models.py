@@ -174,7 +174,24 @@ def test_flomo_noise_and_scaling_only_while_training() -> None:
     assert float(factors.mean()) == pytest.approx(1.0, abs=0.02)
 
 
-def test_gnn_dense_and_sparse_message_passing_agree() -> None:
+def _reference_rounds(gnn: SocialGNN, x: torch.Tensor, pos: torch.Tensor, onehot: torch.Tensor,
+                      mask: torch.Tensor) -> torch.Tensor:
+    """The GNN's rounds written as documented, edge by edge on the padded layout:
+    m_a = sum over valid b of MLP(x_b ++ x_a ++ class_b ++ class_a ++ (p_a - p_b) ++ |p_a - p_b|)."""
+    n, layers = mask.shape[1], len(gnn.update)
+    rel = pos[:, :, None, :] - pos[:, None, :, :]                                    # [p, a, b] = p_a - p_b
+    edge = torch.cat((onehot[:, None].expand(-1, n, -1, -1), onehot[:, :, None].expand(-1, -1, n, -1), rel,
+                      torch.sqrt((rel ** 2).sum(-1, keepdim=True) + 1e-12)), dim=-1)
+    for layer, w_edge in enumerate(gnn.msg_edge.weight.chunk(layers, dim=0)):
+        first = torch.cat((gnn.msg_sender[layer].weight, gnn.msg_receiver[layer].weight, w_edge), dim=1)
+        pair = torch.cat((x[:, None].expand(-1, n, -1, -1), x[:, :, None].expand(-1, -1, n, -1), edge), dim=-1)
+        hidden = torch.relu(torch.nn.functional.linear(pair, first, gnn.msg_sender[layer].bias))
+        message = (gnn.msg_out[layer](hidden) * mask[:, None, :, None]).sum(2)
+        x = gnn.update[layer](torch.cat((x, message), dim=-1)) + x
+    return x
+
+
+def test_gnn_dense_and_sparse_message_passing_match_the_documented_rounds() -> None:
     batch = crowd_batch(6, neighbours=7)
     frame = target_frame(batch.past)
     nodes = social_nodes(batch, frame, to_local(batch.past, frame))
@@ -183,19 +200,22 @@ def test_gnn_dense_and_sparse_message_passing_agree() -> None:
     past, valid, mask, types = nodes
     onehot = torch.nn.functional.one_hot(types, 5).float()
     x = torch.randn(*mask.shape, 32)
-    pos = torch.randn(*mask.shape, 2)
-    dense = gnn._dense_rounds(x, pos, onehot, mask)
-    sparse = gnn._sparse_rounds(x, pos, onehot, mask)
-    assert torch.allclose(dense[mask], sparse[mask], atol=1e-4)
-    # and so do their gradients (the sparse path gathers with index_select, scatters with index_add)
-    gradients = []
-    for rounds in (gnn._dense_rounds, gnn._sparse_rounds):
+    pos = 3 * torch.randn(*mask.shape, 2)
+    # Values and gradients (x, positions, the edge weights) of both implementations against the literal one; the
+    # sparse path gathers with index_select and scatters with index_add, the dense one pools with a product.
+    results = []
+    for rounds in (lambda *a: _reference_rounds(gnn, *a), gnn._dense_rounds, gnn._sparse_rounds):
         x_leaf, pos_leaf = x.clone().requires_grad_(True), pos.clone().requires_grad_(True)
         gnn.zero_grad()
-        (rounds(x_leaf, pos_leaf, onehot, mask)[mask] ** 2).sum().backward()
-        gradients.append((x_leaf.grad[mask], pos_leaf.grad[mask], gnn.msg_edge.weight.grad.clone()))
-    for dense_grad, sparse_grad in zip(*gradients):
-        assert torch.allclose(dense_grad, sparse_grad, rtol=1e-4, atol=1e-3)
+        out = rounds(x_leaf, pos_leaf, onehot, mask)[mask]
+        (out ** 2).sum().backward()
+        results.append((out.detach(), x_leaf.grad[mask], pos_leaf.grad[mask], gnn.msg_edge.weight.grad.clone(),
+                        gnn.msg_sender[0].weight.grad.clone()))
+    reference = results[0]
+    for result in results[1:]:
+        assert torch.allclose(result[0], reference[0], atol=1e-4)
+        for grad, expected in zip(result[1:], reference[1:]):
+            assert torch.allclose(grad, expected, rtol=1e-4, atol=1e-3)
 
 
 @pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])
