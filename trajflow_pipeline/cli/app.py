@@ -211,14 +211,18 @@ def experiment_command(
     config: Annotated[Path, typer.Argument(help="Experiment config (TOML): data, models, folds, seeds, budgets.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Experiment directory (re-running resumes it).")],
     device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help=(
+        "Runs trained at once, in worker processes that share out the CPU threads. The same command may also be "
+        "started again elsewhere: each run is claimed by one process."))] = 1,
     quiet: Quiet = False,
 ) -> None:
     """Train and evaluate every model x fold x seed of a protocol; resumable, metrics collected in OUT."""
     from ..stages.experiment import run_experiment
 
     with user_errors():
-        result = run_experiment(config, out, device=device, quiet=quiet)
-    if not quiet:
+        result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs)
+    index = json.loads((result / "experiment.json").read_text())
+    if not quiet and index["runs"] == index["planned"]:
         stdout.print(f"experiment done: {result} (make a report with `trajflow report {result} -o REPORT`)")
 
 

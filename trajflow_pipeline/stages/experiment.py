@@ -24,13 +24,20 @@ An experiment config is TOML::
 Runs land in ``EXP/runs/<model>-<fold>-s<seed>/``. Re-running the same command skips finished runs and resumes an
 interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work.
 ``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
+
+Several processes can work on one experiment directory: ``--jobs N`` starts N workers, and the same command may
+also be started again (another terminal, another node on a shared file system). Each run is claimed by one
+process (an OS file lock in ``EXP/runs/.<run>.lock``, released when its holder exits, however it exits); the
+others go on to the next run. On a CPU each of N workers gets 1/N of torch's threads: small models gain more
+from parallel runs than from threads.
 """
 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,9 +45,11 @@ import polars as pl
 
 from ..data import list_folds
 from ..errors import TrajflowError, UsageError
+from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, load_config
 from ..schemas import open_dataset
-from ..util.atomic import atomic_write_text
+from ..util.atomic import atomic_file, atomic_write_text
+from ..util.claim import claim
 from ..util.progress import console
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
 
@@ -197,10 +206,12 @@ def run_name(model: str, fold: str | None, seed: int) -> str:
     return f"{model}-{fold or 'all'}-s{seed}"
 
 
-def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False) -> Path:
-    """Train and evaluate every run of the experiment into `out` (resuming what an earlier call left)."""
-    from .train import FINAL_DIR, train
-
+def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False,
+                   jobs: int = 1) -> Path:
+    """Train and evaluate every run of the experiment into `out` (resuming what an earlier call left), with `jobs`
+    worker processes. Runs that another process is working on are left to it (see the module docstring)."""
+    if jobs < 1:
+        raise UsageError(f"--jobs must be at least 1, got {jobs}")
     config = load_experiment(config_path)
     out = Path(out)
     text = Path(config_path).read_text()
@@ -209,29 +220,111 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
                          f"({out / 'config.toml'}); resuming would mix settings. Use a new -o, or delete it")
     data = _ensure_data(config, quiet)
     open_dataset(data)
-    folds = _folds(config, data)
-    plan = [(m, f, s) for m in config.models for f in folds for s in config.seeds]
+    plan = [run_name(*key) for key in _plan(config, data)]
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", text)
-    runs: list[str] = []
+    if jobs == 1:
+        _work(config, data, out, device=device, quiet=quiet)
+    else:
+        _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs)
+    runs = [f"runs/{name}" for name in plan]
+    _write_index(out, config, data, runs)
+    elsewhere = [name for name in plan if not _finished(out / "runs" / name)]
+    if elsewhere and not quiet:
+        console.print(f"[yellow]{len(elsewhere)} run(s) are still in progress in another process[/] "
+                      f"({', '.join(elsewhere)}); the index includes them once they finish")
+    return out
+
+
+def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, int]]:
+    """(model, fold, seed) of every run, in the order they are worked on: model by model."""
+    return [(m, f, s) for m in config.models for f in _folds(config, data) for s in config.seeds]
+
+
+def _finished(run_dir: Path) -> bool:
+    return (run_dir / EVAL_DIR / "metrics.parquet").exists()
+
+
+def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool, worker: str = "",
+          eval_options: EvalOptions | None = None) -> None:
+    """Go through the plan and do each run that is neither finished nor claimed by another process."""
+    from .train import FINAL_DIR, train
+
+    plan = _plan(config, data)
+    runs = [f"runs/{run_name(*key)}" for key in plan]
+    note = (lambda message: console.print(f"{worker}{message}")) if not quiet else (lambda message: None)
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         run_dir = out / "runs" / name
-        runs.append(f"runs/{name}")
-        if (run_dir / EVAL_DIR / "metrics.parquet").exists():
-            if not quiet:
-                console.print(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
+        if _finished(run_dir):
+            note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
             continue
-        if not quiet:
-            console.print(f"[bold]{index}/{len(plan)} {name}[/]")
-        overrides = [*config.train_overrides, *config.model_overrides.get(model, ())]
-        if not (run_dir / FINAL_DIR).exists():
-            train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
-                  device=device, resume=run_dir.exists(), quiet=quiet)
-        evaluate(run_dir, data=data, options=config.eval_options, device=device, quiet=quiet)
+        with claim(out / "runs" / f".{name}.lock") as mine:
+            if not mine:
+                if not worker:  # sibling workers taking runs is expected; another command doing so is news
+                    note(f"[dim]{index}/{len(plan)} {name}: in progress in another process, left to it[/]")
+                continue
+            if _finished(run_dir):  # finished by another process between the check and the claim
+                continue
+            note(f"[bold]{index}/{len(plan)} {name}[/]")
+            overrides = [*config.train_overrides, *config.model_overrides.get(model, ())]
+            inner_quiet = quiet or bool(worker)
+            if not (run_dir / FINAL_DIR).exists():
+                train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
+                      device=device, resume=run_dir.exists(), quiet=inner_quiet)
+            evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
+                     quiet=inner_quiet)
+        note(f"[green]{index}/{len(plan)} {name}: done[/]")
         _write_index(out, config, data, runs)
-    _write_index(out, config, data, runs)
-    return out
+
+
+def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
+                       jobs: int) -> None:
+    """`jobs` worker processes each run :func:`_work`; torch threads and evaluation workers are shared out."""
+    import torch
+
+    threads = max(1, torch.get_num_threads() // jobs)
+    options = config.eval_options
+    if options.workers is None:
+        options = replace(options, workers=max(1, resolve_workers(None) // jobs))
+    if not quiet:
+        console.print(f"{jobs} worker processes, {threads} torch thread(s) and {options.workers} evaluation "
+                      f"worker(s) each")
+    context = multiprocessing.get_context("spawn")
+    workers = [context.Process(target=_worker_main, name=f"experiment-worker-{i}",
+                               args=(config, data, out, device, quiet, f"(worker {i}) ", options, threads))
+               for i in range(1, jobs + 1)]
+    try:
+        for process in workers:
+            process.start()
+        for process in workers:
+            process.join()
+    except BaseException:
+        for process in workers:
+            if process.is_alive():
+                process.terminate()
+        for process in workers:
+            process.join()
+        raise
+    failed = [p.name for p in workers if p.exitcode != 0]
+    if failed:
+        raise TrajflowError(f"{len(failed)} of {jobs} experiment workers failed (their errors are above); finished "
+                            f"runs are kept, and running the same command again resumes the rest")
+
+
+def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, quiet: bool, worker: str,
+                 options: EvalOptions, threads: int) -> None:
+    """Entry point of a worker process: limited torch threads, then the shared plan; errors end it with status 1."""
+    import sys
+
+    import torch
+
+    torch.set_num_threads(threads)
+    try:
+        _work(config, data, out, device=device, quiet=quiet, worker=worker, eval_options=options)
+    except TrajflowError as error:
+        console.print(f"{worker}[red]error:[/] {error}")
+        sys.exit(1)
 
 
 def _write_index(out: Path, config: ExperimentConfig, data: Path, runs: list[str]) -> None:
@@ -243,6 +336,5 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, runs: list[str
     if finished:
         metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
                             how="vertical_relaxed")
-        tmp = out / ".metrics.parquet.tmp"
-        metrics.write_parquet(tmp)
-        tmp.replace(out / "metrics.parquet")
+        with atomic_file(out / "metrics.parquet") as tmp:
+            metrics.write_parquet(tmp)

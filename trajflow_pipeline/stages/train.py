@@ -526,7 +526,7 @@ class _Session:
             "n_past": spec.n_past, "n_future": spec.n_future, "has_map": spec.has_map, "dt": spec.dt,
             "n_train": len(self.data.train), "n_val": len(self.data.val), "validation": self.data.validation,
             "log_lik_space": self.model.log_lik_space, "world_size": self.dist.world, "device": str(self.device),
-            "best": self.best, "skipped_steps": self.skipped_total, "started": self.started,
+            "cpu_threads": torch.get_num_threads(), "best": self.best, "skipped_steps": self.skipped_total, "started": self.started,
             "final": f"{FINAL_DIR}/model.safetensors" if status == "finished" else None,
         }
         if status == "finished":

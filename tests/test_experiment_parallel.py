@@ -1,0 +1,106 @@
+"""Several processes on one experiment directory: run claims, `--jobs` workers, runs left to their holder."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import polars as pl
+import pytest
+
+from test_eval_stage import TINY
+from trajflow_pipeline.stages.experiment import run_experiment
+from trajflow_pipeline.util.claim import claim
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="run claims need POSIX file locks")
+
+
+def _config(tmp_path: Path, models: list[str], seeds: list[int]) -> Path:
+    config = tmp_path / "exp.toml"
+    config.write_text(f'''
+name = "tiny"
+[data]
+path = "{(tmp_path / 'data').as_posix()}"
+ingest = "synthetic-bimodal"
+samples = 80
+[protocol]
+models = {json.dumps(models)}
+seeds = {json.dumps(seeds)}
+[train]
+set = {json.dumps(TINY[2:])}
+[eval]
+samples = 10
+k = 5
+workers = 1
+''')
+    return config
+
+
+def test_a_claim_is_exclusive_until_released(tmp_path: Path) -> None:
+    lock = tmp_path / "runs" / ".a.lock"
+    with claim(lock) as first:
+        assert first
+        with claim(lock) as second:
+            assert not second
+    with claim(lock) as again:
+        assert again
+
+
+def test_a_claim_ends_with_its_process_however_it_ends(tmp_path: Path) -> None:
+    lock = tmp_path / ".run.lock"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom trajflow_pipeline.util.claim import claim\n"
+        f"with claim({str(lock)!r}) as mine:\n    print(mine, flush=True)\n    time.sleep(60)\n")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "True"
+        with claim(lock) as mine:
+            assert not mine
+    finally:
+        os.kill(holder.pid, signal.SIGKILL)
+        holder.wait()
+    with claim(lock) as mine:
+        assert mine
+
+
+def test_a_run_claimed_elsewhere_is_left_to_its_holder(tmp_path: Path) -> None:
+    config = _config(tmp_path, ["cv"], [0, 1, 2])
+    out = tmp_path / "exp"
+    with claim(out / "runs" / ".cv-all-s1.lock") as mine:
+        assert mine
+        run_experiment(config, out, quiet=True)
+    index = json.loads((out / "experiment.json").read_text())
+    assert index["runs"] == ["runs/cv-all-s0", "runs/cv-all-s2"]
+    assert len(index["planned"]) == 3 and not (out / "runs" / "cv-all-s1").exists()
+    assert set(pl.read_parquet(out / "metrics.parquet").get_column("seed")) == {0, 2}
+    run_experiment(config, out, quiet=True)
+    assert json.loads((out / "experiment.json").read_text())["runs"] == [f"runs/cv-all-s{s}" for s in range(3)]
+
+
+def test_jobs_share_the_runs_and_train_each_once(tmp_path: Path) -> None:
+    config = _config(tmp_path, ["trajflow-no-ae", "cv"], [0, 1])
+    out = run_experiment(config, tmp_path / "exp", quiet=True, jobs=2)
+    index = json.loads((out / "experiment.json").read_text())
+    assert index["runs"] == index["planned"] and len(index["runs"]) == 4
+    for seed in (0, 1):
+        run = out / "runs" / f"trajflow-no-ae-all-s{seed}"
+        log = pl.read_parquet(run / "train_log.parquet")
+        assert log.select("stage", "epoch").is_unique().all(), "a run was trained by two workers"
+        info = json.loads((run / "run.json").read_text())
+        assert info["status"] == "finished" and info["cpu_threads"] == max(1, _torch_threads() // 2)
+    metrics = pl.read_parquet(out / "metrics.parquet")
+    assert set(metrics.get_column("model")) == {"trajflow-no-ae", "cv"}
+    started = time.perf_counter()
+    run_experiment(config, out, quiet=True, jobs=2)  # everything done: the workers only skip
+    assert time.perf_counter() - started < 60
+
+
+def _torch_threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
