@@ -158,3 +158,32 @@ def test_degenerate_sample_sets_are_data_errors() -> None:
         nll_indep(pred, gt, workers=1, quiet=True)
     with pytest.raises(UsageError, match="max_pooled"):
         density_metrics(pred, gt, metrics={"nll"}, max_pooled=1)
+
+
+def _point_sets() -> list[np.ndarray]:
+    """Sample sets of the shapes evaluation fits: multi-modal draws, tiny sets, repeated points, noise."""
+    rng = np.random.default_rng(3)
+    modes = rng.integers(0, 3, size=(100, 1)) * np.linspace(0.2, 2.4, 24)
+    repeated = np.repeat(rng.normal(size=(10, 6)), 3, axis=0)
+    two_blobs = np.concatenate((rng.normal(0.0, 0.1, (40, 2)), rng.normal(3.0, 0.1, (25, 2)), rng.uniform(-5, 5, (5, 2))))
+    return [modes + rng.normal(0.0, 0.05, (100, 24)), rng.normal(size=(6, 4)), rng.normal(size=(4, 24)), repeated,
+            two_blobs, rng.normal(size=(250, 48))]
+
+
+def test_scoring_each_distinct_candidate_once_changes_no_rome_fit() -> None:
+    from rome.ROME import ROME
+
+    from trajflow_pipeline.metrics.parallel import _distinct_candidates_scored_once
+
+    clustered = 0
+    for points in _point_sets():
+        queries = np.concatenate((points[:5] + 0.01, points.mean(0, keepdims=True)))
+        np.random.seed(0)
+        library = ROME().fit(points)
+        with _distinct_candidates_scored_once():
+            np.random.seed(0)
+            ours = ROME().fit(points)
+        assert np.array_equal(library.labels_, ours.labels_)
+        assert np.array_equal(library.score_samples(queries), ours.score_samples(queries))
+        clustered += len(np.unique(library.labels_)) > 1
+    assert clustered >= 4, "the sets must exercise the choice among clusterings"
