@@ -36,6 +36,10 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import threading
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -319,6 +323,7 @@ def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, q
 
     import torch
 
+    _exit_with_parent()
     torch.set_num_threads(threads)
     try:
         _work(config, data, out, device=device, quiet=quiet, worker=worker, eval_options=options)
@@ -338,3 +343,17 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, runs: list[str
                             how="vertical_relaxed")
         with atomic_file(out / "metrics.parquet") as tmp:
             metrics.write_parquet(tmp)
+
+
+def _exit_with_parent() -> None:
+    """End this worker as soon as the process that started it ends, however it ends (a SIGTERM or SIGKILL to the
+    experiment command alone leaves its workers running otherwise, holding their runs' claims)."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        multiprocessing.connection.wait([parent.sentinel])
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
