@@ -272,3 +272,44 @@ def test_flow_standardize_is_fitted_logged_saved_and_resumed(monkeypatch: pytest
     assert a.keys() == b.keys() and {"flow.shift", "flow.scale"} <= a.keys()
     for name in a:
         assert torch.equal(a[name], b[name]), name
+
+
+def test_flow_weights_selected_by_the_sample_based_validation_nll(monkeypatch: pytest.MonkeyPatch,
+                                                                   tmp_path: Path) -> None:
+    from safetensors.torch import load_file
+
+    install_fake_data(monkeypatch, 80, 24)
+    options = dict(model="trajflow-no-ae", quiet=True, overrides=[
+        *FAST, *TINY_MODEL, "train.flow_max_epochs=5", "train.flow_batch_size=32", "train.flow_select=val_nll",
+        "train.flow_select_every=2", "train.flow_select_problems=10", "train.flow_select_samples=20"])
+    whole = train(tmp_path / "data", tmp_path / "whole", **options)
+    flow = log_of(whole).filter(pl.col("stage") == "flow")
+    checked = flow.filter(pl.col("val_nll").is_not_null())
+    assert checked.get_column("epoch").to_list() == [2, 4, 5]  # every 2 epochs, and the last one
+    assert checked.get_column("val_nll").is_finite().all()
+    best = checked.sort("val_nll").row(0, named=True)
+    info = json.loads((whole / "run.json").read_text())["best"]["flow"]
+    assert info["selected_by"] == "val_nll" and info["epoch"] == best["epoch"]
+    assert info["val_nll"] == pytest.approx(best["val_nll"])
+    assert info["lowest_val_loss"] == pytest.approx(flow.get_column("val_loss").min())
+    kept, final = load_file(str(whole / "checkpoints" / "best-flow.safetensors")), final_weights(whole)
+    assert kept.keys() == final.keys() and all(torch.equal(kept[k], final[k]) for k in kept)
+    by_loss = load_model(whole / "checkpoints" / "lowest-val-loss-flow.safetensors")  # kept for comparisons
+    assert by_loss.state_dict().keys() == final.keys()
+
+    class Killed(Exception):
+        pass
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == ("flow", 3):
+            raise Killed()
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(Killed):
+        train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    parts = train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    # resumed == uninterrupted: the same checks, values and kept weights
+    assert log_of(parts).drop("seconds", "samples_per_s").equals(log_of(whole).drop("seconds", "samples_per_s"))
+    a, b = final_weights(whole), final_weights(parts)
+    assert all(torch.equal(a[k], b[k]) for k in a)

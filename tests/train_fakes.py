@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from trajflow_pipeline.model.batch import SceneBatch
 
 
@@ -21,3 +23,8 @@ class FakeProblems:
 
     def __len__(self) -> int:
         return len(self.batch)
+
+    @property
+    def group_id(self) -> np.ndarray:
+        """Every toy problem is its own identical-input group."""
+        return np.arange(len(self.batch), dtype=np.int64)

@@ -101,6 +101,10 @@ class ModelConfig:
             raise UsageError("model.flomo_beta, flomo_gamma and flomo_scale_std must be non-negative")
 
 
+#: How a run picks the flow weights it keeps (TrainConfig.flow_select).
+FLOW_SELECTIONS = ("val_loss", "val_nll")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation of the two training stages (AE: autoencoder; flow: flow + context encoders).
@@ -126,6 +130,17 @@ class TrainConfig:
     flow_max_epochs: int = 500
     flow_min_epochs: int = 50
     flow_patience: int = 10
+    #: Which flow weights a run keeps. "val_loss" (the reference): those of the epoch with the lowest validation
+    #: loss, the flow's NLL in its own space. "val_nll" (ours): those with the lowest evaluation NLL -- ROME
+    #: densities of model draws, in metres, pooled over identical inputs, as `trajflow eval` computes it -- on a
+    #: fixed subset of `flow_select_problems` validation problems with `flow_select_samples` draws each (at most
+    #: `flow_select_max_pooled` per pooled group), checked every `flow_select_every` epochs and at the last one.
+    #: Early stopping follows the validation loss either way, so both keep weights of the same training.
+    flow_select: str = "val_loss"
+    flow_select_every: int = 5
+    flow_select_problems: int = 256
+    flow_select_samples: int = 100
+    flow_select_max_pooled: int = 1000
     #: Fraction of the training problems held out for validation when the dataset has no validation split.
     val_fraction: float = 0.1
     #: Clip the global gradient norm to this value; 0 disables clipping.
@@ -147,6 +162,14 @@ class TrainConfig:
                 raise UsageError(f"train.{key} must be positive")
         if not 0 < self.flow_lr_decay <= 1:
             raise UsageError("train.flow_lr_decay must be in (0, 1]")
+        if self.flow_select not in FLOW_SELECTIONS:
+            raise UsageError(f"train.flow_select must be one of {', '.join(FLOW_SELECTIONS)}, not {self.flow_select!r}")
+        for key in ("flow_select_every", "flow_select_problems"):
+            if getattr(self, key) < 1:
+                raise UsageError(f"train.{key} must be at least 1")
+        for key in ("flow_select_samples", "flow_select_max_pooled"):
+            if getattr(self, key) < 2:
+                raise UsageError(f"train.{key} must be at least 2 (a density needs two draws)")
         if not 0 < self.val_fraction < 1:
             raise UsageError("train.val_fraction must be in (0, 1)")
         if self.grad_clip < 0:

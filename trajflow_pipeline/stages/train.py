@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import polars as pl
 import torch
 import torch.distributed as torch_dist
@@ -63,7 +64,8 @@ STATE_FILE = "checkpoints/state.pt"
 FINAL_DIR = "final"
 
 LOG_SCHEMA = {"epoch": pl.Int64, "stage": pl.String, "train_loss": pl.Float64, "val_loss": pl.Float64,
-              "lr": pl.Float64, "seconds": pl.Float64, "skipped_steps": pl.Int64, "samples_per_s": pl.Float64}
+              "lr": pl.Float64, "seconds": pl.Float64, "skipped_steps": pl.Int64, "samples_per_s": pl.Float64,
+              "val_nll": pl.Float64}
 
 #: Called after every completed (and checkpointed) epoch with (stage, epoch); tests use it to simulate a kill.
 EpochHook = Callable[[str, int], None]
@@ -150,6 +152,8 @@ class _Data:
 
     train: SceneBatch
     val: SceneBatch
+    #: (n_val,) identical-input group of each validation problem (pools draws for the sample-based NLL)
+    val_groups: np.ndarray
     spec: DataSpec
     fingerprint: dict[str, str]
     validation: str
@@ -172,6 +176,7 @@ def _load_data(dataset_dir: str | Path, fold: str | None, config: RunConfig) -> 
             raise DataError(f"validation problems have {val_problems.n_past}/{val_problems.n_future} past/future "
                             f"steps, training problems {spec.n_past}/{spec.n_future}", path=dataset_dir)
         val_batch, validation = val_problems.batch, "val split"
+        val_groups = np.asarray(val_problems.group_id, dtype=np.int64)
     else:
         if len(train_batch) < 2:
             raise DataError("need at least 2 training problems to hold out a validation set (no val split)",
@@ -179,10 +184,12 @@ def _load_data(dataset_dir: str | Path, fold: str | None, config: RunConfig) -> 
         order = torch.randperm(len(train_batch), generator=torch.Generator().manual_seed(config.train.seed))
         n_val = min(len(train_batch) - 1, max(1, round(len(train_batch) * config.train.val_fraction)))
         val_batch, train_batch = train_batch.index(order[:n_val]), train_batch.index(order[n_val:])
+        val_groups = np.asarray(train_problems.group_id, dtype=np.int64)[order[:n_val].numpy()]
         validation = f"held out {n_val} of the train split (train.val_fraction={config.train.val_fraction})"
     if train_batch.future is None or val_batch.future is None:
         raise DataError("training problems carry no ground-truth future", path=dataset_dir)
-    return _Data(train_batch, val_batch, spec, dict(train_problems.fingerprint), validation, Path(dataset_dir))
+    return _Data(train_batch, val_batch, val_groups, spec, dict(train_problems.fingerprint), validation,
+                 Path(dataset_dir))
 
 
 def _load_validation(dataset_dir: str | Path, fold: str | None) -> Any:
@@ -289,6 +296,9 @@ class _StageProgress:
     best_epoch: int = 0
     bad_epochs: int = 0
     best_weights: dict[str, Tensor] | None = None
+    #: with train.flow_select = "val_nll": the lowest sample-based validation NLL so far and its epoch
+    selected_nll: float = math.inf
+    selected_epoch: int = 0
     optimizer: dict[str, Any] | None = None
     scheduler: dict[str, Any] | None = None
 
@@ -362,6 +372,7 @@ class _Session:
         max_epochs, min_epochs = (cfg.ae_max_epochs, cfg.ae_min_epochs) if ae else (cfg.flow_max_epochs,
                                                                                        cfg.flow_min_epochs)
         patience = cfg.ae_patience if ae else cfg.flow_patience
+        by_sample_nll = stage == "flow" and cfg.flow_select == "val_nll"
         params = self.model.stage_parameters(stage)
         trainable = {id(p) for p in params}
         for p in self.model.parameters():
@@ -417,19 +428,34 @@ class _Session:
             val_loss = _mean_loss(self.model, stage, val_batch, cfg.eval_batch_size, self.dist, self.device)
             if scheduler is not None:
                 scheduler.step()
-            seconds = time.perf_counter() - start
             progress.epoch = epoch
-            if math.isfinite(val_loss) and val_loss < progress.best_val:
+            improved = math.isfinite(val_loss) and val_loss < progress.best_val
+            if improved:
                 progress.best_val, progress.best_epoch, progress.bad_epochs = val_loss, epoch, 0
+            else:
+                progress.bad_epochs += 1
+            stop = epoch >= max_epochs or _should_stop(progress, min_epochs, patience)
+            val_nll, keep = math.nan, improved
+            if by_sample_nll:
+                keep = False
+                if improved and self.writer:  # what "val_loss" would have kept, for comparing the two
+                    save_model(self.model, self.run_dir / f"checkpoints/lowest-val-loss-{stage}.safetensors",
+                               extra={"stage": stage, "epoch": epoch, "val_loss": val_loss})
+                if epoch % cfg.flow_select_every == 0 or stop:
+                    val_nll = self._sample_nll(val_batch)
+                    keep = math.isfinite(val_nll) and val_nll < progress.selected_nll
+                    if keep:
+                        progress.selected_nll, progress.selected_epoch = val_nll, epoch
+            if keep:
                 progress.best_weights = _copy_weights(self.model)
                 if self.writer:
                     save_model(self.model, self.run_dir / f"checkpoints/best-{stage}.safetensors",
-                               extra={"stage": stage, "epoch": epoch, "val_loss": val_loss})
-            else:
-                progress.bad_epochs += 1
+                               extra={"stage": stage, "epoch": epoch, "val_loss": val_loss,
+                                      **({"val_nll": val_nll} if by_sample_nll else {})})
+            seconds = time.perf_counter() - start
             self.skipped_total += skipped
             self._log_epoch(stage, epoch, train_loss, val_loss, lr_now, seconds, skipped,
-                            self.dist.world * per_rank / max(train_seconds, 1e-9))
+                            self.dist.world * per_rank / max(train_seconds, 1e-9), val_nll)
             progress.optimizer = optimizer.state_dict()
             progress.scheduler = scheduler.state_dict() if scheduler is not None else None
             self._checkpoint(index, progress)
@@ -437,19 +463,47 @@ class _Session:
                         status=f"train {train_loss:.4f}  val {val_loss:.4f}  best {progress.best_val:.4f}")
             if _epoch_hook is not None:
                 _epoch_hook(stage, epoch)
-            stop = epoch >= max_epochs or _should_stop(progress, min_epochs, patience)
         bars.remove_task(batch_task)
         if progress.best_weights is not None:
             self.model.load_state_dict(progress.best_weights)
         self.best[stage] = {"epoch": progress.best_epoch, "val_loss": progress.best_val}
+        if by_sample_nll:
+            self.best[stage] = {"epoch": progress.selected_epoch, "val_nll": progress.selected_nll,
+                                "selected_by": "val_nll", "lowest_val_loss": progress.best_val,
+                                "lowest_val_loss_epoch": progress.best_epoch}
+
+    def _sample_nll(self, val_batch: SceneBatch) -> float:
+        """The evaluation's NLL (nats; ROME densities of draws, pooled over identical inputs) on a fixed, seeded
+        subset of the validation problems, with the same noise at every check so that checks differ only by the
+        weights. Every rank computes the same number (same weights, same draws), so ranks choose alike."""
+        from ..metrics import compute_metrics
+
+        cfg = self.config.train
+        subset = torch.randperm(len(val_batch), generator=torch.Generator().manual_seed(cfg.seed))
+        subset = subset[:cfg.flow_select_problems].sort().values
+        generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.model.eval()
+        draws = []
+        with torch.no_grad():
+            for chunk in subset.split(max(1, cfg.eval_batch_size)):
+                batch = val_batch.index(chunk.to(val_batch.past.device))
+                if batch.past.device != self.device:
+                    batch = batch.to(self.device)
+                draws.append(self.model.sample(batch, cfg.flow_select_samples, generator=generator)
+                             .trajectories.double().cpu())
+        ground_truth = val_batch.future.index_select(0, subset.to(val_batch.future.device)).double().cpu()
+        table = compute_metrics(torch.cat(draws).numpy(), ground_truth.numpy(), metrics=("nll",),
+                                group_id=self.data.val_groups[subset.numpy()], max_pooled=cfg.flow_select_max_pooled,
+                                workers=1, quiet=True)
+        return float(table.filter(pl.col("aggregate")).get_column("value")[0])
 
     # -- persistence -----------------------------------------------------------------------------------------------
 
     def _log_epoch(self, stage: str, epoch: int, train_loss: float, val_loss: float, lr: float, seconds: float,
-                   skipped: int, rate: float) -> None:
+                   skipped: int, rate: float, val_nll: float = math.nan) -> None:
         self.log.append({"epoch": epoch, "stage": stage, "train_loss": float(train_loss), "val_loss": float(val_loss),
                          "lr": float(lr), "seconds": float(seconds), "skipped_steps": int(skipped),
-                         "samples_per_s": float(rate)})
+                         "samples_per_s": float(rate), "val_nll": None if math.isnan(val_nll) else float(val_nll)})
         if self.writer:
             frame = pl.DataFrame(self.log, schema=LOG_SCHEMA)
             buffer = io.BytesIO()
@@ -469,6 +523,8 @@ class _Session:
             "bad_epochs": progress.bad_epochs,
             "weights": _copy_weights(self.model),
             "best_weights": progress.best_weights,
+            "selected_nll": progress.selected_nll,
+            "selected_epoch": progress.selected_epoch,
             "optimizer": progress.optimizer,
             "scheduler": progress.scheduler,
             "log": self.log,
@@ -490,7 +546,9 @@ class _Session:
         progress = _StageProgress(epoch=int(state["epoch"]), best_val=float(state["best_val"]),
                                   best_epoch=int(state["best_epoch"]), bad_epochs=int(state["bad_epochs"]),
                                   best_weights=state["best_weights"], optimizer=state["optimizer"],
-                                  scheduler=state["scheduler"])
+                                  scheduler=state["scheduler"],
+                                  selected_nll=float(state.get("selected_nll", math.inf)),
+                                  selected_epoch=int(state.get("selected_epoch", 0)))
         if self.writer and not self.quiet:
             console.print(f"[dim]resuming {self.run_dir}: stage {int(state['stage_index']) + 1}, "
                           f"after epoch {progress.epoch}[/]")
@@ -511,7 +569,7 @@ class _Session:
                      "trajflow_version": __version__}, indent=2) + "\n")
             self._write_run_info("finished", info_extra)
             if not self.quiet:
-                best = ", ".join(f"{stage} val {b['val_loss']:.4f} (epoch {b['epoch']})"
+                best = ", ".join(f"{stage} val {b['val_nll'] if 'val_nll' in b else b['val_loss']:.4f} (epoch {b['epoch']})"
                                  for stage, b in self.best.items())
                 console.print(f"[green]trained[/] {self.model.name} -> {self.run_dir / FINAL_DIR}: {best}"
                               + (f"; skipped {self.skipped_total} non-finite steps" if self.skipped_total else ""))
