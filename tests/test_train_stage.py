@@ -313,3 +313,19 @@ def test_flow_weights_selected_by_the_sample_based_validation_nll(monkeypatch: p
     assert log_of(parts).drop("seconds", "samples_per_s").equals(log_of(whole).drop("seconds", "samples_per_s"))
     a, b = final_weights(whole), final_weights(parts)
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_draws_rome_cannot_fit_do_not_end_a_val_nll_run(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    import trajflow_pipeline.metrics as metrics_module
+
+    def unfittable(*args: object, **kwargs: object) -> None:
+        raise DataError("all 20 draws of agent 3 are identical")
+
+    install_fake_data(monkeypatch, 80, 24)
+    monkeypatch.setattr(metrics_module, "compute_metrics", unfittable)
+    run = train(tmp_path / "data", tmp_path / "run", model="trajflow-no-ae", quiet=True, overrides=[
+        *FAST, *TINY_MODEL, "train.flow_max_epochs=3", "train.flow_batch_size=32", "train.flow_select=val_nll",
+        "train.flow_select_every=1", "train.flow_select_problems=10", "train.flow_select_samples=20"])
+    assert log_of(run).filter(pl.col("stage") == "flow").get_column("val_nll").null_count() == 3
+    best = json.loads((run / "run.json").read_text())["best"]["flow"]
+    assert best["epoch"] == 3 and best["selected_by"].startswith("last epoch")

@@ -23,6 +23,8 @@ start methods can import them.
 from __future__ import annotations
 
 import contextlib
+import functools
+import importlib.metadata
 import multiprocessing
 import os
 from collections.abc import Iterator, Sequence
@@ -93,6 +95,18 @@ def fit_and_score(task: RomeTask, seed: int) -> tuple[np.ndarray, ...]:
     return out
 
 
+#: romepy versions whose candidate selection (_silhouette_multiple_clusterings) was read and tested here.
+_AUDITED_ROMEPY = frozenset({"0.1.4"})
+
+
+@functools.cache
+def _romepy_version() -> str | None:
+    try:
+        return importlib.metadata.version("romepy")
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
 @contextlib.contextmanager
 def _distinct_candidates_scored_once() -> Iterator[None]:
     """While active, ROME's choice among its candidate clusterings scores each distinct candidate only once.
@@ -102,12 +116,13 @@ def _distinct_candidates_scored_once() -> Iterator[None]:
     12 steps, ~45 of ~180 usable ones are distinct. ROME keeps the first candidate with the best score, and a
     repeated candidate scores exactly what its first occurrence did, so passing ROME's own selection function only
     the first occurrence of each distinct candidate, in their order, picks the same clustering bit for bit
-    (tested against the unmodified library). Should a later romepy lack the function, nothing is changed.
+    (tested against the unmodified library). The argument rests on that function's body, so only the romepy
+    versions it was checked against are changed; with any other the library runs as it is.
     """
     import rome.ROME as rome_module
 
     select = getattr(rome_module, "_silhouette_multiple_clusterings", None)
-    if select is None:
+    if select is None or _romepy_version() not in _AUDITED_ROMEPY:
         yield
         return
 

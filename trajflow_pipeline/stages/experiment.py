@@ -40,6 +40,7 @@ import multiprocessing.connection
 import os
 import signal
 import threading
+import time
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -53,7 +54,7 @@ from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, load_config
 from ..schemas import open_dataset
 from ..util.atomic import atomic_file, atomic_write_text
-from ..util.claim import claim
+from ..util.claim import claim, claims_supported
 from ..util.progress import console
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
 
@@ -216,6 +217,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     worker processes. Runs that another process is working on are left to it (see the module docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
+    if jobs > 1 and not claims_supported():
+        raise UsageError("--jobs needs POSIX file locks (fcntl), which this platform lacks: use --jobs 1")
     config = load_experiment(config_path)
     out = Path(out)
     text = Path(config_path).read_text()
@@ -242,7 +245,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
 
 def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, int]]:
     """(model, fold, seed) of every run, in the order they are worked on: model by model."""
-    return [(m, f, s) for m in config.models for f in _folds(config, data) for s in config.seeds]
+    folds = _folds(config, data)
+    return [(m, f, s) for m in config.models for f in folds for s in config.seeds]
 
 
 def _finished(run_dir: Path) -> bool:
@@ -261,7 +265,8 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
         name = run_name(model, fold, seed)
         run_dir = out / "runs" / name
         if _finished(run_dir):
-            note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
+            if not worker:  # N workers would say it N times
+                note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
             continue
         with claim(out / "runs" / f".{name}.lock") as mine:
             if not mine:
@@ -330,30 +335,37 @@ def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, q
     except TrajflowError as error:
         console.print(f"{worker}[red]error:[/] {error}")
         sys.exit(1)
+    except KeyboardInterrupt:  # Ctrl-C reaches every worker; the parent reports it once
+        sys.exit(130)
 
 
 def _write_index(out: Path, config: ExperimentConfig, data: Path, runs: list[str]) -> None:
-    """experiment.json and the concatenated metrics of the runs finished so far."""
-    finished = [r for r in runs if (out / r / EVAL_DIR / "metrics.parquet").exists()]
-    atomic_write_text(out / "experiment.json", json.dumps(
-        {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs,
-         "config": config.source}, indent=2, default=str) + "\n")
-    if finished:
-        metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
-                            how="vertical_relaxed")
-        with atomic_file(out / "metrics.parquet") as tmp:
-            metrics.write_parquet(tmp)
+    """experiment.json and the concatenated metrics of the runs finished so far; one process at a time, so that
+    both files always describe the same runs."""
+    with claim(out / ".index.lock", wait=True):
+        finished = [r for r in runs if _finished(out / r)]
+        if finished:
+            metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
+                                how="vertical_relaxed")
+            with atomic_file(out / "metrics.parquet") as tmp:
+                metrics.write_parquet(tmp)
+        atomic_write_text(out / "experiment.json", json.dumps(
+            {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs,
+             "config": config.source}, indent=2, default=str) + "\n")
 
 
-def _exit_with_parent() -> None:
+def _exit_with_parent(grace_s: float = 30.0) -> None:
     """End this worker as soon as the process that started it ends, however it ends (a SIGTERM or SIGKILL to the
-    experiment command alone leaves its workers running otherwise, holding their runs' claims)."""
+    experiment command alone leaves its workers running otherwise, holding their runs' claims): an interrupt
+    first, so that temporary files are cleaned up and pools shut down, then a kill after `grace_s` seconds."""
     parent = multiprocessing.parent_process()
     if parent is None:
         return
 
     def watch() -> None:
         multiprocessing.connection.wait([parent.sentinel])
-        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(grace_s)
+        os.kill(os.getpid(), signal.SIGKILL)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()

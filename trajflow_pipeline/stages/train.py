@@ -373,6 +373,8 @@ class _Session:
                                                                                        cfg.flow_min_epochs)
         patience = cfg.ae_patience if ae else cfg.flow_patience
         by_sample_nll = stage == "flow" and cfg.flow_select == "val_nll"
+        select_subset = torch.randperm(len(val_batch), generator=torch.Generator().manual_seed(cfg.seed))
+        select_subset = select_subset[:cfg.flow_select_problems].sort().values
         params = self.model.stage_parameters(stage)
         trainable = {id(p) for p in params}
         for p in self.model.parameters():
@@ -435,6 +437,7 @@ class _Session:
             else:
                 progress.bad_epochs += 1
             stop = epoch >= max_epochs or _should_stop(progress, min_epochs, patience)
+            seconds = time.perf_counter() - start
             val_nll, keep = math.nan, improved
             if by_sample_nll:
                 keep = False
@@ -442,7 +445,7 @@ class _Session:
                     save_model(self.model, self.run_dir / f"checkpoints/lowest-val-loss-{stage}.safetensors",
                                extra={"stage": stage, "epoch": epoch, "val_loss": val_loss})
                 if epoch % cfg.flow_select_every == 0 or stop:
-                    val_nll = self._sample_nll(val_batch)
+                    val_nll = self._sample_nll(val_batch, select_subset, epoch)
                     keep = math.isfinite(val_nll) and val_nll < progress.selected_nll
                     if keep:
                         progress.selected_nll, progress.selected_epoch = val_nll, epoch
@@ -452,7 +455,6 @@ class _Session:
                     save_model(self.model, self.run_dir / f"checkpoints/best-{stage}.safetensors",
                                extra={"stage": stage, "epoch": epoch, "val_loss": val_loss,
                                       **({"val_nll": val_nll} if by_sample_nll else {})})
-            seconds = time.perf_counter() - start
             self.skipped_total += skipped
             self._log_epoch(stage, epoch, train_loss, val_loss, lr_now, seconds, skipped,
                             self.dist.world * per_rank / max(train_seconds, 1e-9), val_nll)
@@ -467,35 +469,47 @@ class _Session:
         if progress.best_weights is not None:
             self.model.load_state_dict(progress.best_weights)
         self.best[stage] = {"epoch": progress.best_epoch, "val_loss": progress.best_val}
-        if by_sample_nll:
+        if by_sample_nll and progress.selected_epoch:
             self.best[stage] = {"epoch": progress.selected_epoch, "val_nll": progress.selected_nll,
                                 "selected_by": "val_nll", "lowest_val_loss": progress.best_val,
                                 "lowest_val_loss_epoch": progress.best_epoch}
+        elif by_sample_nll:  # no check gave a finite value: the last weights stay
+            self.best[stage] = {"epoch": progress.epoch, "val_loss": progress.best_val,
+                                "selected_by": "last epoch (no finite sample-based validation NLL)",
+                                "lowest_val_loss": progress.best_val, "lowest_val_loss_epoch": progress.best_epoch}
 
-    def _sample_nll(self, val_batch: SceneBatch) -> float:
-        """The evaluation's NLL (nats; ROME densities of draws, pooled over identical inputs) on a fixed, seeded
-        subset of the validation problems, with the same noise at every check so that checks differ only by the
-        weights. Every rank computes the same number (same weights, same draws), so ranks choose alike."""
+    def _sample_nll(self, val_batch: SceneBatch, subset: Tensor, epoch: int) -> float:
+        """The evaluation's NLL (nats; ROME densities of draws, pooled over identical inputs) on the validation
+        problems `subset`, with the same noise at every check so that checks differ only by the weights. Rank 0
+        computes it and every rank gets its value, so all ranks keep the same epoch. Draws ROME cannot fit (non-
+        finite, or all identical) give NaN, which is never kept, with a warning: the run goes on."""
         from ..metrics import compute_metrics
 
-        cfg = self.config.train
-        subset = torch.randperm(len(val_batch), generator=torch.Generator().manual_seed(cfg.seed))
-        subset = subset[:cfg.flow_select_problems].sort().values
-        generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
-        self.model.eval()
-        draws = []
-        with torch.no_grad():
-            for chunk in subset.split(max(1, cfg.eval_batch_size)):
-                batch = val_batch.index(chunk.to(val_batch.past.device))
-                if batch.past.device != self.device:
-                    batch = batch.to(self.device)
-                draws.append(self.model.sample(batch, cfg.flow_select_samples, generator=generator)
-                             .trajectories.double().cpu())
-        ground_truth = val_batch.future.index_select(0, subset.to(val_batch.future.device)).double().cpu()
-        table = compute_metrics(torch.cat(draws).numpy(), ground_truth.numpy(), metrics=("nll",),
-                                group_id=self.data.val_groups[subset.numpy()], max_pooled=cfg.flow_select_max_pooled,
-                                workers=1, quiet=True)
-        return float(table.filter(pl.col("aggregate")).get_column("value")[0])
+        value: float | None = None
+        if self.dist.rank == 0:
+            cfg = self.config.train
+            generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
+            self.model.eval()
+            draws = []
+            with torch.no_grad():
+                for chunk in subset.split(max(1, cfg.eval_batch_size)):
+                    batch = val_batch.index(chunk.to(val_batch.past.device))
+                    if batch.past.device != self.device:
+                        batch = batch.to(self.device)
+                    draws.append(self.model.sample(batch, cfg.flow_select_samples, generator=generator)
+                                 .trajectories.double().cpu())
+            ground_truth = val_batch.future.index_select(0, subset.to(val_batch.future.device)).double().cpu()
+            try:
+                table = compute_metrics(torch.cat(draws).numpy(), ground_truth.numpy(), metrics=("nll",),
+                                        group_id=self.data.val_groups[subset.numpy()],
+                                        max_pooled=cfg.flow_select_max_pooled, workers=1, quiet=True)
+                value = float(table.filter(pl.col("aggregate")).get_column("value")[0])
+            except DataError as error:
+                value = math.nan
+                if not self.quiet:
+                    console.print(f"[yellow]warning:[/] epoch {epoch}: no sample-based validation NLL ({error}); "
+                                  "these weights are not kept")
+        return float(self.dist.gather(value)[0])
 
     # -- persistence -----------------------------------------------------------------------------------------------
 
@@ -569,8 +583,7 @@ class _Session:
                      "trajflow_version": __version__}, indent=2) + "\n")
             self._write_run_info("finished", info_extra)
             if not self.quiet:
-                best = ", ".join(f"{stage} val {b['val_nll'] if 'val_nll' in b else b['val_loss']:.4f} (epoch {b['epoch']})"
-                                 for stage, b in self.best.items())
+                best = ", ".join(f"{stage} {_kept_by(b)} (epoch {b['epoch']})" for stage, b in self.best.items())
                 console.print(f"[green]trained[/] {self.model.name} -> {self.run_dir / FINAL_DIR}: {best}"
                               + (f"; skipped {self.skipped_total} non-finite steps" if self.skipped_total else ""))
         self.dist.barrier()
@@ -584,7 +597,8 @@ class _Session:
             "n_past": spec.n_past, "n_future": spec.n_future, "has_map": spec.has_map, "dt": spec.dt,
             "n_train": len(self.data.train), "n_val": len(self.data.val), "validation": self.data.validation,
             "log_lik_space": self.model.log_lik_space, "world_size": self.dist.world, "device": str(self.device),
-            "cpu_threads": torch.get_num_threads(), "best": self.best, "skipped_steps": self.skipped_total, "started": self.started,
+            "cpu_threads": torch.get_num_threads(), "best": self.best, "skipped_steps": self.skipped_total,
+            "started": self.started,
             "final": f"{FINAL_DIR}/model.safetensors" if status == "finished" else None,
         }
         if status == "finished":
@@ -594,6 +608,11 @@ class _Session:
 
 
 # ---------------------------------------------------------------------------------------------------------- helpers
+
+def _kept_by(best: dict[str, Any]) -> str:
+    """What a stage's kept weights were chosen by, for the summary line: "val 0.1234" or "val_nll -41.2000"."""
+    return f"val_nll {best['val_nll']:.4f}" if "val_nll" in best else f"val {best['val_loss']:.4f}"
+
 
 def _on_device(batch: SceneBatch, device: torch.device) -> SceneBatch:
     """Keep map crops on the host (too large to preload); move everything else once."""
