@@ -107,7 +107,8 @@ def test_eval_cli_and_report(tiny_run: Path, tmp_path: Path) -> None:
     assert "data:image/png;base64," in (out / "report.html").read_text()
 
 
-def test_experiment_runs_every_model_and_resumes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def write_tiny_experiment(tmp_path: Path, models: list[str], seeds: list[int]) -> Path:
+    """An experiment config over a small synthetic dataset (ingested on first use) with tiny budgets."""
     config = tmp_path / "exp.toml"
     config.write_text(f'''
 name = "tiny"
@@ -116,8 +117,8 @@ path = "{(tmp_path / 'data').as_posix()}"
 ingest = "synthetic-bimodal"
 samples = 80
 [protocol]
-models = ["cv", "trajflow-no-ae"]
-seeds = [0, 1]
+models = {json.dumps(models)}
+seeds = {json.dumps(seeds)}
 [train]
 set = {json.dumps(TINY[2:])}
 [eval]
@@ -125,6 +126,11 @@ samples = 10
 k = 5
 workers = 1
 ''')
+    return config
+
+
+def test_experiment_runs_every_model_and_resumes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config = write_tiny_experiment(tmp_path, ["cv", "trajflow-no-ae"], [0, 1])
     assert load_experiment(config).models == ("cv", "trajflow-no-ae")
     out = run_experiment(config, tmp_path / "exp", quiet=True)
     index = json.loads((out / "experiment.json").read_text())

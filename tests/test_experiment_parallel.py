@@ -13,32 +13,11 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from test_eval_stage import TINY
+from test_eval_stage import write_tiny_experiment
 from trajflow_pipeline.stages.experiment import run_experiment
 from trajflow_pipeline.util.claim import claim
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="run claims need POSIX file locks")
-
-
-def _config(tmp_path: Path, models: list[str], seeds: list[int]) -> Path:
-    config = tmp_path / "exp.toml"
-    config.write_text(f'''
-name = "tiny"
-[data]
-path = "{(tmp_path / 'data').as_posix()}"
-ingest = "synthetic-bimodal"
-samples = 80
-[protocol]
-models = {json.dumps(models)}
-seeds = {json.dumps(seeds)}
-[train]
-set = {json.dumps(TINY[2:])}
-[eval]
-samples = 10
-k = 5
-workers = 1
-''')
-    return config
 
 
 def test_a_claim_is_exclusive_until_released(tmp_path: Path) -> None:
@@ -69,7 +48,7 @@ def test_a_claim_ends_with_its_process_however_it_ends(tmp_path: Path) -> None:
 
 
 def test_a_run_claimed_elsewhere_is_left_to_its_holder(tmp_path: Path) -> None:
-    config = _config(tmp_path, ["cv"], [0, 1, 2])
+    config = write_tiny_experiment(tmp_path, ["cv"], [0, 1, 2])
     out = tmp_path / "exp"
     with claim(out / "runs" / ".cv-all-s1.lock") as mine:
         assert mine
@@ -83,7 +62,7 @@ def test_a_run_claimed_elsewhere_is_left_to_its_holder(tmp_path: Path) -> None:
 
 
 def test_jobs_share_the_runs_and_train_each_once(tmp_path: Path) -> None:
-    config = _config(tmp_path, ["trajflow-no-ae", "cv"], [0, 1])
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae", "cv"], [0, 1])
     out = run_experiment(config, tmp_path / "exp", quiet=True, jobs=2)
     index = json.loads((out / "experiment.json").read_text())
     assert index["runs"] == index["planned"] and len(index["runs"]) == 4

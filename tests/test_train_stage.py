@@ -50,6 +50,24 @@ def install_fake_data(monkeypatch: pytest.MonkeyPatch, n_train: int, n_val: int,
     monkeypatch.setattr(data_module, "load_problems", load_problems)
 
 
+def train_killed_and_resumed(monkeypatch: pytest.MonkeyPatch, run: Path, kill_after: tuple[str, int],
+                             **options: object) -> Path:
+    """Train into `run` until the epoch `kill_after` (stage, epoch) is checkpointed, die there, then resume."""
+
+    class Killed(Exception):
+        pass
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == kill_after:
+            raise Killed()
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(Killed):
+        train(run.parent / "data", run, resume=True, **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    return train(run.parent / "data", run, resume=True, **options)
+
+
 def log_of(run: Path) -> pl.DataFrame:
     return pl.read_parquet(run / "train_log.parquet")
 
@@ -256,19 +274,8 @@ def test_flow_standardize_is_fitted_logged_saved_and_resumed(monkeypatch: pytest
     model = load_model(whole)
     assert model.stages == ("standardize", "flow") and bool((model.flow.scale != 1).all())
 
-    class Killed(Exception):
-        pass
-
-    def hook(stage: str, epoch: int) -> None:
-        if (stage, epoch) == ("flow", 1):
-            raise Killed()
-
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
-    with pytest.raises(Killed):
-        train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
-    train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
-    a, b = final_weights(whole), final_weights(tmp_path / "parts")
+    parts = train_killed_and_resumed(monkeypatch, tmp_path / "parts", ("flow", 1), **options)
+    a, b = final_weights(whole), final_weights(parts)
     assert a.keys() == b.keys() and {"flow.shift", "flow.scale"} <= a.keys()
     for name in a:
         assert torch.equal(a[name], b[name]), name
@@ -297,18 +304,7 @@ def test_flow_weights_selected_by_the_sample_based_validation_nll(monkeypatch: p
     by_loss = load_model(whole / "checkpoints" / "lowest-val-loss-flow.safetensors")  # kept for comparisons
     assert by_loss.state_dict().keys() == final.keys()
 
-    class Killed(Exception):
-        pass
-
-    def hook(stage: str, epoch: int) -> None:
-        if (stage, epoch) == ("flow", 3):
-            raise Killed()
-
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
-    with pytest.raises(Killed):
-        train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
-    parts = train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+    parts = train_killed_and_resumed(monkeypatch, tmp_path / "parts", ("flow", 3), **options)
     # resumed == uninterrupted: the same checks, values and kept weights
     assert log_of(parts).drop("seconds", "samples_per_s").equals(log_of(whole).drop("seconds", "samples_per_s"))
     a, b = final_weights(whole), final_weights(parts)
