@@ -373,8 +373,9 @@ class _Session:
                                                                                        cfg.flow_min_epochs)
         patience = cfg.ae_patience if ae else cfg.flow_patience
         by_sample_nll = stage == "flow" and cfg.flow_select == "val_nll"
-        select_subset = torch.randperm(len(val_batch), generator=torch.Generator().manual_seed(cfg.seed))
-        select_subset = select_subset[:cfg.flow_select_problems].sort().values
+        if by_sample_nll:  # a fixed, seeded subset of the validation problems for every check
+            select_subset = torch.randperm(len(val_batch), generator=torch.Generator().manual_seed(cfg.seed))
+            select_subset = select_subset[:cfg.flow_select_problems].sort().values
         params = self.model.stage_parameters(stage)
         trainable = {id(p) for p in params}
         for p in self.model.parameters():
@@ -406,10 +407,8 @@ class _Session:
             total, count, skipped = 0.0, 0, 0
             bars.reset(batch_task, total=n_batches)
             for b in range(n_batches):
-                idx = shard[b * batch_size:(b + 1) * batch_size].to(train_batch.past.device)
-                batch = train_batch.index(idx)
-                if batch.past.device != self.device:
-                    batch = batch.to(self.device)
+                idx = shard[b * batch_size:(b + 1) * batch_size]
+                batch = _part(train_batch, idx, self.device)
                 loss = objective(batch)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -493,10 +492,8 @@ class _Session:
             draws = []
             with torch.no_grad():
                 for chunk in subset.split(max(1, cfg.eval_batch_size)):
-                    batch = val_batch.index(chunk.to(val_batch.past.device))
-                    if batch.past.device != self.device:
-                        batch = batch.to(self.device)
-                    draws.append(self.model.sample(batch, cfg.flow_select_samples, generator=generator)
+                    draws.append(self.model.sample(_part(val_batch, chunk, self.device), cfg.flow_select_samples,
+                                                   generator=generator)
                                  .trajectories.double().cpu())
             ground_truth = val_batch.future.index_select(0, subset.to(val_batch.future.device)).double().cpu()
             try:
@@ -614,6 +611,12 @@ def _kept_by(best: dict[str, Any]) -> str:
     return f"val_nll {best['val_nll']:.4f}" if "val_nll" in best else f"val {best['val_loss']:.4f}"
 
 
+def _part(batch: SceneBatch, idx: Tensor, device: torch.device) -> SceneBatch:
+    """Problems `idx` of `batch`, on `device` (map crops stay on the host until a batch needs them)."""
+    part = batch.index(idx.to(batch.past.device))
+    return part if part.past.device == device else part.to(device)
+
+
 def _on_device(batch: SceneBatch, device: torch.device) -> SceneBatch:
     """Keep map crops on the host (too large to preload); move everything else once."""
     if device.type == "cpu" or batch.map_crop is not None:
@@ -663,11 +666,8 @@ def _mean_loss(model: TrajectoryModel, stage: str, batch: SceneBatch, chunk: int
     mine = torch.arange(dist.rank, n, dist.world)
     total, count = 0.0, 0
     for start in range(0, len(mine), chunk):
-        idx = mine[start:start + chunk].to(batch.past.device)
-        part = batch.index(idx)
-        if part.past.device != device:
-            part = part.to(device)
-        total += float(model.stage_loss(stage, part)) * len(idx)
+        idx = mine[start:start + chunk]
+        total += float(model.stage_loss(stage, _part(batch, idx, device))) * len(idx)
         count += len(idx)
     total, count = dist.sum([total, count], device)
     return total / count if count else math.nan
