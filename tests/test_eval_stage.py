@@ -40,7 +40,7 @@ def test_eval_writes_predictions_ground_truth_and_every_metric(tiny_run: Path) -
     info = json.loads((out / "eval.json").read_text())
     assert info["model"] == "trajflow" and info["dataset"] == "synthetic_bimodal" and info["problems"] == 120
     assert info["log_lik_label"] == "latent" and info["samples"] == 12 and info["k"] == 5
-    assert info["jsd_groups"] == 1 and info["jsd_groups_skipped"] == 0
+    assert info["jsd_groups"] == 1 and info["jsd_groups_skipped"] == 0 and info["jsd_groups_identical_futures"] == 0
     predictions = pl.read_parquet(out / "predictions.parquet")
     assert predictions.columns == ["sample_id", "draw", "step", "x", "y", "log_lik"]
     assert predictions.height == 120 * 12 * 14

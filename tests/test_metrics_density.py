@@ -14,7 +14,7 @@ from scipy.stats import multivariate_normal
 
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics import (RomeTask, density_metrics, fit_and_score, jsd, jsd_from_log_densities,
-                                       nll_indep, nll_joint)
+                                       jsd_groups, nll_indep, nll_joint)
 from trajflow_pipeline.metrics import density as density_module
 
 
@@ -106,6 +106,23 @@ def test_jsd_skips_singleton_groups_and_needs_group_id() -> None:
     assert values.shape == (1,) and 0.0 <= values[0] <= 1.0
     with pytest.raises(UsageError, match="group_id"):
         jsd(pred, gt, None)
+
+
+def test_jsd_skips_groups_whose_futures_are_all_the_same() -> None:
+    """A point mass has no density: such a group gets no JSD row, where it used to abort the whole evaluation."""
+    rng = np.random.default_rng(13)
+    gt = rng.normal(size=(7, 3, 2))
+    gt[3:6] = gt[3]                                  # group 4: three standing pedestrians, the same future
+    group = np.array([1, 1, 1, 4, 4, 4, 9])
+    pred = gt[:, None] + rng.normal(scale=0.1, size=(7, 20, 3, 2))
+    keys, values = jsd(pred, gt, group, workers=1, quiet=True)
+    np.testing.assert_array_equal(keys, [1])
+    assert 0.0 <= values[0] <= 1.0
+    evaluated, identical = jsd_groups(gt, group)
+    np.testing.assert_array_equal(evaluated, [1])
+    np.testing.assert_array_equal(identical, [4])
+    gt[4, -1, 0] += 1e-6                              # one future differs a little: evaluated again
+    np.testing.assert_array_equal(jsd_groups(gt, group)[0], [1, 4])
 
 
 def test_pooled_nll_fits_the_group_predictions_together() -> None:

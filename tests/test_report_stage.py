@@ -317,13 +317,15 @@ def test_parquet_training_log_without_validation(tmp_path: Path) -> None:
         report([run], tmp_path / "rep", quiet=True)
 
 
-def test_single_future_groups_skipped_by_jsd_are_counted(tmp_path: Path) -> None:
+def test_groups_skipped_by_jsd_are_counted(tmp_path: Path) -> None:
     runs = [write_run(tmp_path / "runs", model="trajflow", dataset="forking_paths", fold=str(f), seed=0)
             for f in range(2)]
-    for run, (evaluated, skipped) in zip(runs, [(5, 2), (4, 1)]):
+    for run, (evaluated, skipped, identical) in zip(runs, [(5, 2, 0), (4, 1, 3)]):
         info = json.loads((run / "eval" / "eval.json").read_text())
         (run / "eval" / "eval.json").write_text(json.dumps({**info, "jsd_groups": evaluated,
-                                                            "jsd_groups_skipped": skipped}))
+                                                            "jsd_groups_skipped": skipped,
+                                                            "jsd_groups_identical_futures": identical}))
     out = report(runs, tmp_path / "rep", quiet=True, figures=False)
-    assert ("JSD skipped 3 identical-input group(s) with a single ground-truth future (evaluated on 9 group(s)"
+    assert ("JSD skipped 3 with a single ground-truth future and 3 whose ground-truth futures are all the same "
+            "(identical-input groups; evaluated on 9 group(s) with different futures)"
             in (out / "report.md").read_text())

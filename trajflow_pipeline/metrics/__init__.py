@@ -8,7 +8,8 @@ entry point; the per-metric functions are for direct use (figures such as minADE
 """
 
 from trajflow_pipeline.metrics.compute import METRIC_NAMES, check_metric_names, compute_metrics
-from trajflow_pipeline.metrics.density import DensityResults, density_metrics, jsd, nll_indep, nll_joint
+from trajflow_pipeline.metrics.density import (DensityResults, density_metrics, jsd, jsd_groups, nll_indep,
+                                               nll_joint)
 from trajflow_pipeline.metrics.displacement import (DEFAULT_K, ade_fde_per_draw, min_ade, min_ade_joint, min_fde,
                                                     min_fde_joint)
 from trajflow_pipeline.metrics.divergence import jsd_from_log_densities
@@ -26,6 +27,7 @@ __all__ = [
     "fit_and_score",
     "jsd",
     "jsd_from_log_densities",
+    "jsd_groups",
     "min_ade",
     "min_ade_joint",
     "min_fde",

@@ -129,5 +129,5 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     table = pl.concat(frames, how="vertical") if frames else pl.DataFrame(schema=SCHEMA)
     if table.height == 0:
         raise UsageError(f"nothing to report for metrics {list(wanted)}: jsd needs a group_id with groups of "
-                         "at least 2 agents")
+                         "at least 2 agents whose ground truths differ")
     return table

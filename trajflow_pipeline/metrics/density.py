@@ -18,8 +18,10 @@ How each number is made (matching the reference benchmarking framework of Schuma
   * JSD, group g of `group_id` with >= 2 agents: Q = ROME on the group's ground-truth futures (the set of
     gts is the ground-truth distribution), P = the group's pooled predicted density (as for NLL), and the
     Monte-Carlo estimator of `divergence.jsd_from_log_densities` on the gts and the pooled predictions.
-    Groups of one agent have no ground-truth distribution and get no JSD row. The aggregate is the mean
-    over groups.
+    Groups of one agent have no ground-truth distribution and get no JSD row; neither do groups whose
+    ground truths are all the same (a point mass has no density; real data has them: ETH/UCY's hotel has
+    standing pedestrians whose inputs and futures agree). `jsd_groups` says which groups get a row. The
+    aggregate is the mean over groups.
   * Large pooled sets follow the reference's scheme: when a group pools more predictions than
     max(n_gt, 5 S, 2500), they are shuffled (seeded) and split into chunks of that size, one ROME fit per
     chunk, and P is the average of the chunk densities (left-over points are scored but not fitted).
@@ -65,7 +67,7 @@ class DensityResults:
     nll: np.ndarray | None = None                 # (A,) per agent
     nll_joint_keys: np.ndarray | None = None      # (G,) joint_key values, ascending
     nll_joint: np.ndarray | None = None           # (G,)
-    jsd_keys: np.ndarray | None = None            # (H,) group_id values of groups with >= 2 agents
+    jsd_keys: np.ndarray | None = None            # (H,) group_id values of the groups `jsd_groups` evaluates
     jsd: np.ndarray | None = None                 # (H,)
     jsd_agents: np.ndarray | None = None          # (H,) the lowest agent index of each JSD group
 
@@ -145,6 +147,27 @@ def _check_options(metrics: set[str], max_pooled: int | None, seed: int) -> None
         raise UsageError(f"seed must be a non-negative integer; got {seed!r}")
 
 
+def jsd_groups(gt: np.ndarray, group_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which identical-input groups JSD can evaluate: (keys of groups with two or more different ground-truth
+    futures, keys of groups with several futures that are all the same), for gt (A, T, 2) and group_id (A,).
+    Groups of one future are in neither."""
+    groups = group_agents(group_id, len(gt), "group_id")
+    several = np.flatnonzero(groups.counts >= 2)
+    spread = _has_spread(flatten_futures(np.asarray(gt, dtype=np.float64)), groups, several)
+    return groups.keys[several[spread]], groups.keys[several[~spread]]
+
+
+def _has_spread(gt_flat: np.ndarray, groups: Groups, which: np.ndarray) -> np.ndarray:
+    """For groups `which`: whether their members' ground truths differ anywhere (one bool per group)."""
+    if which.size == 0:
+        return np.zeros(0, dtype=bool)
+    order = np.concatenate([groups.members[g] for g in which])
+    starts = np.concatenate([[0], np.cumsum(groups.counts[which])[:-1]])
+    values = gt_flat[order]
+    ptp = np.maximum.reduceat(values, starts, axis=0) - np.minimum.reduceat(values, starts, axis=0)
+    return ptp.max(axis=1) > 0.0
+
+
 def _build_plan(pred_flat: np.ndarray, gt_flat: np.ndarray, metrics: set[str], id_groups: Groups,
                 joint_groups: Groups, pooled: bool, max_pooled: int | None, seed: int,
                 agent_ids: np.ndarray | None = None) -> _Plan:
@@ -154,15 +177,18 @@ def _build_plan(pred_flat: np.ndarray, gt_flat: np.ndarray, metrics: set[str], i
     n_agents, n_samples = pred_flat.shape[:2]
     plan.want_indep = "nll" in metrics or ("nll_joint" in metrics and bool((joint_groups.counts == 1).any()))
     plan.pooled = pooled
-    jsd_groups = np.flatnonzero(id_groups.counts >= 2).tolist() if "jsd" in metrics else []
+    with_jsd: list[int] = []
+    if "jsd" in metrics:
+        several = np.flatnonzero(id_groups.counts >= 2)
+        with_jsd = several[_has_spread(gt_flat, id_groups, several)].tolist()
     if plan.want_indep and not pooled:
         for a in range(n_agents):
             name = a if agent_ids is None else int(agent_ids[a])
             plan.agent_fit[a] = plan.add(pred_flat[a], (gt_flat[a:a + 1],), f"the samples of agent {name}")
-    pooled_groups = set(jsd_groups) | (set(range(id_groups.keys.size)) if plan.want_indep and pooled else set())
+    pooled_groups = set(with_jsd) | (set(range(id_groups.keys.size)) if plan.want_indep and pooled else set())
     for g in sorted(pooled_groups):
-        _plan_pooled(plan, pred_flat, gt_flat, id_groups, g, g in jsd_groups, max_pooled, seed)
-    for g in jsd_groups:
+        _plan_pooled(plan, pred_flat, gt_flat, id_groups, g, g in with_jsd, max_pooled, seed)
+    for g in with_jsd:
         members = id_groups.members[g]
         plan.gt_fit[g] = plan.add(gt_flat[members], (gt_flat[members], plan.pooled_mc[g]),
                                   f"the ground truths of group_id {id_groups.keys[g]}")
@@ -333,7 +359,8 @@ def nll_joint(pred: np.ndarray, gt: np.ndarray, joint_key: np.ndarray | None, *,
 def jsd(pred: np.ndarray, gt: np.ndarray, group_id: np.ndarray, *, max_pooled: int | None = None,
         t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
         quiet: bool = False, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """JSD in [0, 1] per group of identical inputs with >= 2 agents: (group_id values (H,), values (H,))."""
+    """JSD in [0, 1] per group of identical inputs with different ground truths (see `jsd_groups`):
+    (group_id values (H,), values (H,))."""
     if group_id is None:
         raise UsageError("jsd needs group_id: the ground-truth distribution is the set of gts of a group")
     result = density_metrics(pred, gt, metrics={"jsd"}, group_id=group_id, max_pooled=max_pooled,

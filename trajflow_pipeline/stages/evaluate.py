@@ -51,7 +51,7 @@ import torch
 from .. import __version__
 from ..data import Problems, build_problems, select_samples
 from ..errors import TrajflowError, UsageError
-from ..metrics import METRIC_NAMES, check_metric_names, compute_metrics
+from ..metrics import METRIC_NAMES, check_metric_names, compute_metrics, jsd_groups
 from ..metrics.compute import SCHEMA, metric_rows
 from ..metrics.inputs import group_agents, group_minimum
 from ..model.models import CV_EXTENSION, TrajectoryModel
@@ -390,7 +390,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "data_fingerprint": problems.fingerprint, "config": run.config,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
-        **_group_counts(problems.group_id, options.metrics),
+        **_group_counts(problems, horizon.evaluated, options.metrics),
     }
     with atomic_directory(run.path / EVAL_DIR) as tmp:
         predictions_table(problems.sample_id, trajectories, log_lik).write_parquet(tmp / "predictions.parquet")
@@ -400,12 +400,16 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     return run.path / EVAL_DIR
 
 
-def _group_counts(group_id: np.ndarray, metrics: tuple[str, ...]) -> dict[str, int]:
-    """How many identical-input groups JSD evaluates (two or more futures) and skips (a single future)."""
+def _group_counts(problems: Problems, steps: int, metrics: tuple[str, ...]) -> dict[str, int]:
+    """How many identical-input groups JSD evaluates over `steps` (futures that differ), and how many it skips
+    because they have a single future or several identical ones (no ground-truth density)."""
     if "jsd" not in metrics:
         return {}
-    _, sizes = np.unique(group_id, return_counts=True)
-    return {"jsd_groups": int((sizes >= 2).sum()), "jsd_groups_skipped": int((sizes < 2).sum())}
+    assert problems.batch.future is not None
+    _, sizes = np.unique(problems.group_id, return_counts=True)
+    evaluated, point_mass = jsd_groups(problems.batch.future[:, :steps].double().numpy(), problems.group_id)
+    return {"jsd_groups": int(evaluated.size), "jsd_groups_skipped": int((sizes < 2).sum()),
+            "jsd_groups_identical_futures": int(point_mass.size)}
 
 
 def aggregate_metrics(eval_dir: str | Path) -> dict[str, float]:

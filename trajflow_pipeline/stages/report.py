@@ -107,11 +107,14 @@ def _consistency_notes(runs: list[Run]) -> list[str]:
         notes.append(f"Runs use different K: {_counts([r.k for r in runs])}; minADE/minFDE mix them.")
     if len({r.draws for r in runs}) > 1:
         notes.append(f"Runs use different numbers of draws: {_counts([r.draws for r in runs])}.")
-    skipped = [int(r.info.get("jsd_groups_skipped") or 0) for r in runs]
-    if any(skipped):
-        evaluated = [int(r.info.get("jsd_groups") or 0) for r in runs]
-        notes.append(f"JSD skipped {sum(skipped)} identical-input group(s) with a single ground-truth future "
-                     f"(evaluated on {sum(evaluated)} group(s) with several), summed over runs.")
+    skipped = sum(int(r.info.get("jsd_groups_skipped") or 0) for r in runs)
+    identical = sum(int(r.info.get("jsd_groups_identical_futures") or 0) for r in runs)
+    if skipped or identical:
+        evaluated = sum(int(r.info.get("jsd_groups") or 0) for r in runs)
+        reasons = [f"{skipped} with a single ground-truth future"] * bool(skipped) + [
+            f"{identical} whose ground-truth futures are all the same"] * bool(identical)
+        notes.append(f"JSD skipped {' and '.join(reasons)} (identical-input groups; evaluated on {evaluated} "
+                     "group(s) with different futures), summed over runs.")
     repeated = Counter((r.model, r.fold, r.seed) for r in runs)
     for (model, fold, seed), count in sorted(repeated.items(), key=str):
         if count > 1:
