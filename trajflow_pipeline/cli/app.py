@@ -43,14 +43,41 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+#: commands that run models, whose torch thread count matters
+MODEL_COMMANDS = frozenset({"train", "eval", "experiment", "demo"})
+#: set by the console script: choose torch's thread count from the idle CPUs (off where the app is embedded)
+AUTO_THREADS = {"enabled": False}
+
+
+def _set_threads(command: str | None, threads: int | None) -> None:
+    """--threads N as given; otherwise, for model commands run from the console script, as many threads as the
+    machine has idle CPUs, so that a second trajflow beside a busy one does not slow both down many times over."""
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+    elif AUTO_THREADS["enabled"] and command in MODEL_COMMANDS:
+        from ..model.runtime import fit_threads_to_idle_cpus
+
+        lowered = fit_threads_to_idle_cpus()
+        if lowered is not None:
+            console.print(f"[yellow]note:[/] other processes keep CPUs busy: {lowered[1]} torch thread(s) instead "
+                          f"of {lowered[0]} (set them with trajflow --threads N)", highlight=False)
+
+
 @app.callback()
 def _root(
+    ctx: typer.Context,
     debug: Annotated[bool, typer.Option("--debug", help="Show full tracebacks for errors.")] = False,
+    threads: Annotated[Optional[int], typer.Option(
+        "--threads", min=1, help="torch CPU threads for model commands (default: one per CPU that other processes "
+                                 "leave idle; OMP_NUM_THREADS is respected).")] = None,
     version: Annotated[Optional[bool], typer.Option("--version", callback=_version, is_eager=True,
                                                     help="Print the version and exit.")] = None,
 ) -> None:
     """TrajFlow: from raw trajectory datasets to trained normalizing-flow predictors and paper-grade metrics."""
     set_debug(debug)
+    _set_threads(ctx.invoked_subcommand, threads)
 
 
 def _done(out: Path, quiet: bool) -> None:
@@ -252,4 +279,5 @@ augment_app.command("scale-rotate")(augment_scale_rotate_command)
 
 def main() -> None:
     """Entry point of the `trajflow` console script."""
+    AUTO_THREADS["enabled"] = True
     app()

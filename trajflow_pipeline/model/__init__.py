@@ -13,7 +13,7 @@ from .checkpoint import (FORMAT_VERSION, MODEL_FILE, load_model, load_training_s
 from .config import MODEL_NAMES, DataSpec, ModelConfig, RunConfig, TrainConfig, apply_overrides, load_config
 from .models import (MODEL_CLASSES, ConstantVelocity, FloMo, Samples, TrajectoryModel, TrajFlow, TrajFlowNoAE,
                      build_model)
-from .runtime import resolve_device, tune_cpu_allocator
+from .runtime import fit_threads_to_idle_cpus, resolve_device, tune_cpu_allocator
 
 __all__ = [
     "AGENT_TYPES", "NUM_AGENT_TYPES", "SceneBatch",
@@ -22,5 +22,5 @@ __all__ = [
     "MODEL_NAMES", "DataSpec", "ModelConfig", "RunConfig", "TrainConfig", "apply_overrides", "load_config",
     "MODEL_CLASSES", "ConstantVelocity", "FloMo", "Samples", "TrajectoryModel", "TrajFlow", "TrajFlowNoAE",
     "build_model",
-    "resolve_device", "tune_cpu_allocator",
+    "fit_threads_to_idle_cpus", "resolve_device", "tune_cpu_allocator",
 ]
