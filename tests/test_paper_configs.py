@@ -89,3 +89,30 @@ def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Pat
 
 def test_there_are_configs_of_ours() -> None:
     assert OURS, "configs/ours holds our variants of the paper protocols"
+
+
+BUDGET = sorted((CONFIGS.parent / "cpu").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", BUDGET, ids=lambda p: p.stem)
+def test_cpu_configs_change_only_the_training_budget_of_a_paper_protocol(path: Path) -> None:
+    """configs/cpu: a paper protocol (same data, folds, seeds and evaluation; some of its models) whose training
+    stops earlier, so that it finishes in a session of a 2-core CPU. Only epoch limits may differ, and only down."""
+    budget = load_experiment(path)
+    paper = load_experiment(CONFIGS / f"{path.stem.removesuffix('_cpu')}.toml")
+    for key in ("data_path", "ingest", "ingest_options", "folds", "seeds", "eval_options"):
+        assert getattr(budget, key) == getattr(paper, key), key
+    assert {"trajflow", "cv"} <= set(budget.models) <= set(paper.models)
+    assert not budget.model_overrides
+    keys = {o.split("=", 1)[0] for o in budget.train_overrides}
+    assert keys and keys <= {"train.ae_max_epochs", "train.ae_min_epochs", "train.flow_max_epochs",
+                             "train.flow_min_epochs"}
+    reduced, defaults = load_config(overrides=list(budget.train_overrides)).train, load_config().train
+    for key in keys:
+        name = key.removeprefix("train.")
+        assert getattr(reduced, name) <= getattr(defaults, name), key
+    assert reduced.ae_min_epochs <= reduced.ae_max_epochs and reduced.flow_min_epochs <= reduced.flow_max_epochs
+
+
+def test_there_are_cpu_budget_configs() -> None:
+    assert BUDGET, "configs/cpu holds the paper protocols at a CPU-session training budget"
