@@ -2,6 +2,7 @@
 
     python bench/train.py                      # CPU with 2 threads, and CUDA when available
     python bench/train.py --threads 1 --repeats 5 --models trajflow
+    python bench/train.py --no-cpu             # CUDA only
 
 Training: samples/s of one optimisation step per stage (loss, backward, finiteness check, fused AdamW) at batch
 128 on ETH/UCY-shaped problems (8 past, 12 future steps) with up to 0, 8 and 24 neighbours (80% of them present).
@@ -109,9 +110,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed rounds per figure; the best is printed")
     parser.add_argument("--models", nargs="+", default=["trajflow", "trajflow-no-ae", "flomo", "cv"])
     parser.add_argument("--no-cuda", action="store_true", help="skip the CUDA figures")
+    parser.add_argument("--no-cpu", action="store_true", help="skip the CPU figures")
     args = parser.parse_args()
     tune_cpu_allocator()
-    for threads in args.threads:
+    for threads in [] if args.no_cpu else args.threads:
         torch.set_num_threads(threads)
         run(torch.device("cpu"), args.models, args.repeats)
     if torch.cuda.is_available() and not args.no_cuda:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.integrate import trapezoid
 from scipy.stats import multivariate_normal
 
 from trajflow_pipeline.errors import DataError, UsageError
@@ -27,7 +28,7 @@ def _gaussian_jsd_on_grid(mean_q, cov_q, mean_p, cov_p) -> float:
     m = 0.5 * (p + q)
     with np.errstate(divide="ignore", invalid="ignore"):
         f = 0.5 * (np.where(q > 0, q * np.log(q / m), 0.0) + np.where(p > 0, p * np.log(p / m), 0.0))
-    return float(np.trapz(np.trapz(f, x, axis=1), x) / np.log(2.0))
+    return float(trapezoid(trapezoid(f, x, axis=1), x) / np.log(2.0))
 
 
 MEAN_Q, COV_Q = np.zeros(2), np.eye(2)
