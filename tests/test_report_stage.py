@@ -329,3 +329,22 @@ def test_groups_skipped_by_jsd_are_counted(tmp_path: Path) -> None:
     assert ("JSD skipped 3 with a single ground-truth future and 3 whose ground-truth futures are all the same "
             "(identical-input groups; evaluated on 9 group(s) with different futures)"
             in (out / "report.md").read_text())
+
+
+def test_settings_that_differ_from_the_paper_are_named(tmp_path: Path) -> None:
+    """A reduced budget or a change of ours shows next to the numbers; keys that only identify a run do not."""
+    runs = [write_run(tmp_path / "runs", model=m, dataset="eth_ucy", fold=f, seed=0)
+            for m in ("trajflow", "flomo") for f in ("eth", "hotel")]
+    for run in runs:
+        info = json.loads((run / "eval" / "eval.json").read_text())
+        info["config"]["train"] |= {"flow_max_epochs": 25, "device": "cuda", "seed": 7}
+        if info["model"] == "flomo":
+            info["config"]["model"] |= {"flow_standardize": True}
+        (run / "eval" / "eval.json").write_text(json.dumps(info))
+    markdown = (report(runs, tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
+    assert ("Settings that differ from the paper's: model.flow_standardize = true (paper: false) in 2 runs (FloMo); "
+            "train.flow_max_epochs = 25 (paper: 500) in all runs." in markdown)
+    assert "train.device" not in markdown and "train.seed" not in markdown
+    plain = [write_run(tmp_path / "plain", model="trajflow", dataset="eth_ucy", fold="eth", seed=0)]
+    assert "differ from the paper" not in (report(plain, tmp_path / "rep2", quiet=True, figures=False)
+                                           / "report.md").read_text()

@@ -8,7 +8,8 @@ REPORT is written atomically (a complete new report replaces an older one, or no
 * ``report.json``  the numbers behind the tables and the runs they came from, for scripts.
 
 Per dataset (never one mixed table): one row per model, mean ± std over folds and seeds of each run's aggregate
-metric values, the best in bold, the paper's TrajFlow row and plain "met / not met" target lines; per-fold
+metric values, the best in bold, the paper's TrajFlow row and plain "met / not met" target lines, with a note
+naming the settings in which the runs differ from the paper's (a reduced budget, a change of ours); per-fold
 breakdowns; then the figures. A provenance section lists, for every run, what produced its numbers.
 """
 
@@ -27,6 +28,7 @@ from rich.progress import Progress
 
 from .. import __version__
 from ..errors import TrajflowError, UsageError
+from ..model.config import RunConfig
 from ..report.collect import (Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs,
                               scan_ground_truth, scan_predictions)
 from ..report.curves import min_ade_curve
@@ -121,6 +123,30 @@ def _consistency_notes(runs: list[Run]) -> list[str]:
             notes.append(f"{model_label(model)} fold {fold or '—'} seed {seed} appears in {count} runs; each counts "
                          "in mean ± std.")
     return notes
+
+
+#: config keys that say which run it is or where it ran, not how its model was made
+_RUN_IDENTITY = {("model", "name"), ("train", "seed"), ("train", "device"), ("train", "eval_batch_size")}
+
+
+def _paper_deviations(runs: list[Run]) -> list[str]:
+    """The settings in which the runs' configs (eval.json `config`) differ from the paper's, which are the built-in
+    defaults: a reduced training budget or a change of ours must show next to the numbers it produced."""
+    paper = RunConfig().to_dict()
+    where: dict[tuple[str, str, str], list[Run]] = {}
+    for run in runs:
+        config = run.info.get("config")
+        for section, values in (config.items() if isinstance(config, dict) else ()):
+            for key, value in (values.items() if isinstance(values, dict) else ()):
+                default = paper.get(section, {}).get(key)
+                if (section, key) not in _RUN_IDENTITY and key in paper.get(section, {}) and value != default:
+                    where.setdefault((section, key, json.dumps(value)), []).append(run)
+    notes = []
+    for (section, key, value), members in sorted(where.items()):
+        models = ", ".join(model_label(m) for m in model_order([r.model for r in members]))
+        scope = "all runs" if len(members) == len(runs) else f"{_plural(len(members), 'run')} ({models})"
+        notes.append(f"{section}.{key} = {value} (paper: {json.dumps(paper[section][key])}) in {scope}")
+    return [f"Settings that differ from the paper's: {'; '.join(notes)}."] if notes else []
 
 
 def _example_figure(dataset: str, refs: dict[str, Run], max_examples: int) -> Figure | None:
@@ -220,7 +246,7 @@ def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_f
     title = label if label == dataset else f"{label} (`{dataset}`)"
     stats = summary.filter(pl.col("dataset") == dataset)
     blocks: list[Block] = [Heading(2, title, anchor=slug(dataset)), Paragraph(_describe(runs))]
-    notes = _consistency_notes(runs)
+    notes = _consistency_notes(runs) + _paper_deviations(runs)
     if notes:
         blocks.append(Bullets(tuple(f"Note: {n}" for n in notes)))
     blocks += [Heading(3, "Results"), summary_table(stats, dataset, _common([r.k for r in runs])),
