@@ -12,6 +12,11 @@ task's index in the list (ROME itself is deterministic given its input, but it a
 the global RNG). A task's result therefore depends only on its data and index, never on which process or
 in which order it ran: serial and parallel runs give bit-identical arrays.
 
+ROME prints "PCA failed, was done again with different random start." to stdout when a cluster's covariance is
+singular and it retries with added jitter (its own fallback; the fit goes on). Those lines would land in the
+middle of progress bars and tables, so they are counted instead, and :func:`run_rome_tasks` says once how many
+fits needed the fallback.
+
 Workers are never forked from the calling process: the eval stage has used torch's thread pools before the
 metrics run, and forking a process with live OpenMP threads can deadlock the child. They come from a
 'forkserver' (a fresh, single-threaded interpreter that has imported ROME / scikit-learn once, ~2-3 s,
@@ -34,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajflow_pipeline.errors import DataError, UsageError
-from trajflow_pipeline.util.progress import make_progress
+from trajflow_pipeline.util.progress import console, make_progress
 
 #: ROME's default minimum standard deviation (metres here); the reference framework uses the default too.
 DEFAULT_MIN_STD = 0.1
@@ -63,7 +68,13 @@ def resolve_workers(workers: int | None) -> int:
 
 
 def fit_and_score(task: RomeTask, seed: int) -> tuple[np.ndarray, ...]:
-    """Fit ROME on `task.fit` and return the log-density at each query array (float64).
+    """Fit ROME on `task.fit` and return the log-density at each query array (float64); see `_fit_and_score`."""
+    return _fit_and_score(task, seed)[0]
+
+
+def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], int]:
+    """Fit ROME on `task.fit`; return the log-density at each query array (float64) and how many times ROME fell
+    back to re-running a failed PCA with jitter (0 for most fits).
 
     Runs in whichever process calls it; BLAS / OpenMP threads are limited to one and numpy's global RNG is
     seeded with `seed` so that the result is a function of (task, seed) only. Finiteness is checked here
@@ -82,7 +93,7 @@ def fit_and_score(task: RomeTask, seed: int) -> tuple[np.ndarray, ...]:
     # and parameter validation skipped (inputs are checked finite float64 here; ~20 % of a fit's time,
     # numbers unchanged); each distinct candidate clustering scored once (numbers unchanged, see below).
     with threadpool_limits(limits=1), sklearn.config_context(assume_finite=True, skip_parameter_validation=True), \
-            _distinct_candidates_scored_once():
+            _distinct_candidates_scored_once(), _rome_messages_counted() as messages:
         np.random.seed(seed % (2**32))
         model = ROME(min_std=task.min_std).fit(np.ascontiguousarray(task.fit, dtype=np.float64))
         out = tuple(np.asarray(model.score_samples(np.ascontiguousarray(q, dtype=np.float64)), dtype=np.float64)
@@ -92,7 +103,28 @@ def fit_and_score(task: RomeTask, seed: int) -> tuple[np.ndarray, ...]:
             raise DataError(f"ROME returned a non-finite log-density for {task.label} "
                             f"({task.fit.shape[0]} points of dimension {task.fit.shape[1]}): "
                             "the sample set is degenerate")
-    return out
+    return out, sum(PCA_RETRY_MESSAGE in message for message in messages)
+
+
+#: What ROME prints (once per failed attempt) when it re-runs a cluster's PCA with jitter.
+PCA_RETRY_MESSAGE = "PCA failed"
+
+
+@contextlib.contextmanager
+def _rome_messages_counted() -> Iterator[list[str]]:
+    """While active, what ROME's module prints is collected in the yielded list instead of reaching stdout.
+
+    ROME calls the built-in ``print``; a module-level ``print`` shadows it for that module only, so nothing else
+    that writes to stdout meanwhile (a progress bar's refresh thread) is affected.
+    """
+    import rome.ROME as rome_module
+
+    messages: list[str] = []
+    rome_module.print = lambda *args, **kwargs: messages.append(" ".join(str(a) for a in args))  # type: ignore[attr-defined]
+    try:
+        yield messages
+    finally:
+        del rome_module.print  # type: ignore[attr-defined]
 
 
 #: romepy versions whose candidate selection (_silhouette_multiple_clusterings) was read and tested here.
@@ -137,9 +169,9 @@ def _distinct_candidates_scored_once() -> Iterator[None]:
         rome_module._silhouette_multiple_clusterings = select
 
 
-def _run_batch(batch: list[tuple[int, RomeTask]], base_seed: int) -> list[tuple[int, tuple[np.ndarray, ...]]]:
+def _run_batch(batch: list[tuple[int, RomeTask]], base_seed: int) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
     """Worker entry point (top level, so 'spawn' can import it): run a batch of (index, task) pairs."""
-    return [(index, fit_and_score(task, base_seed + index)) for index, task in batch]
+    return [(index, _fit_and_score(task, base_seed + index)) for index, task in batch]
 
 
 #: Modules the forkserver imports once, so that forked workers start with ROME ready.
@@ -168,11 +200,13 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
 
     `workers` processes (default: all cores; 1 runs in this process, as does a single task) share the
     tasks; task `i` is seeded with `base_seed + i`, so the numbers are identical for any `workers`.
-    A rich progress bar counts finished fits unless `quiet`.
+    A rich progress bar counts finished fits unless `quiet`, and a note says how many fits needed ROME's PCA
+    fallback (see the module docstring) when any did.
     """
     n_workers = resolve_workers(workers)
     n_tasks = len(tasks)
     results: list[tuple[np.ndarray, ...] | None] = [None] * n_tasks
+    retries = np.zeros(n_tasks, dtype=np.int64)
     if n_tasks == 0:
         return []
     progress = make_progress(quiet)
@@ -180,7 +214,7 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
         bar = progress.add_task(description, total=n_tasks)
         if n_workers == 1 or n_tasks == 1:
             for index, task in enumerate(tasks):
-                results[index] = fit_and_score(task, base_seed + index)
+                results[index], retries[index] = _fit_and_score(task, base_seed + index)
                 progress.advance(bar)
         else:
             batches = _batches(n_tasks, n_workers)
@@ -189,8 +223,8 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
                 try:
                     for future in as_completed(futures):
                         done = future.result()
-                        for index, values in done:
-                            results[index] = values
+                        for index, (values, retried) in done:
+                            results[index], retries[index] = values, retried
                         progress.advance(bar, len(done))
                 except BaseException:
                     for future in futures:
@@ -199,4 +233,7 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     missing = [i for i, r in enumerate(results) if r is None]
     if missing:  # cannot happen unless the pool misbehaves; never hand back a silently short list
         raise RuntimeError(f"ROME tasks {missing[:10]} produced no result")
+    if retries.any() and not quiet:
+        console.print(f"[dim]note: {int((retries > 0).sum())} of {n_tasks} ROME fits re-ran a failed PCA with added "
+                      f"jitter ({int(retries.sum())} retries; ROME's own fallback for a singular cluster)[/]")
     return results  # type: ignore[return-value]
