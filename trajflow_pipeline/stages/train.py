@@ -13,6 +13,8 @@ keeps the weights of its best validation epoch. A step whose gradients are not f
                                       best epochs, skipped steps, status ("training" / "finished");
 * ``train_log.parquet``            -- epoch, stage, train_loss, val_loss, lr, seconds, skipped_steps, samples_per_s;
 * ``checkpoints/state.pt``         -- the last epoch's full training state (``--resume`` continues from it);
+* ``checkpoints/end-<stage>.pt``   -- the full training state at the last epoch of each finished gradient stage
+                                      (what a larger epoch budget continues that stage from);
 * ``checkpoints/best-<stage>.safetensors`` -- the best validation weights of each stage so far;
 * ``final/model.safetensors``      -- the trained model (:func:`trajflow_pipeline.model.load_model`); ``final/``
                                       appears only when training has finished.
@@ -61,6 +63,8 @@ CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
 LOG_FILE = "train_log.parquet"
 STATE_FILE = "checkpoints/state.pt"
+#: The training state at the last epoch of a finished gradient stage, formatted with the stage name.
+STAGE_END_FILE = "checkpoints/end-{stage}.pt"
 FINAL_DIR = "final"
 
 LOG_SCHEMA = {"epoch": pl.Int64, "stage": pl.String, "train_loss": pl.Float64, "val_loss": pl.Float64,
@@ -465,6 +469,8 @@ class _Session:
             if _epoch_hook is not None:
                 _epoch_hook(stage, epoch)
         bars.remove_task(batch_task)
+        # The stage's last epoch, before its best weights are loaded: a larger budget continues from here.
+        self._checkpoint(index, progress, STAGE_END_FILE.format(stage=stage))
         if progress.best_weights is not None:
             self.model.load_state_dict(progress.best_weights)
         self.best[stage] = {"epoch": progress.best_epoch, "val_loss": progress.best_val}
@@ -521,10 +527,11 @@ class _Session:
             frame.write_parquet(buffer)
             atomic_write_bytes(self.run_dir / LOG_FILE, buffer.getvalue())
 
-    def _checkpoint(self, stage_index: int, progress: _StageProgress) -> None:
+    def _checkpoint(self, stage_index: int, progress: _StageProgress, path: str = STATE_FILE) -> None:
+        """Write the resumable training state (stage `stage_index` at `progress`) to `path` in the run."""
         if not self.writer:
             return
-        save_training_state(self.run_dir / STATE_FILE, {
+        save_training_state(self.run_dir / path, {
             "model": self.model.name,
             "config": self.config.to_json(),
             "stage_index": stage_index,
