@@ -140,13 +140,11 @@ def test_experiment_runs_every_model_and_resumes(tmp_path: Path, monkeypatch: py
     assert set(metrics.get_column("model")) == {"cv", "trajflow-no-ae"}
     # an interrupted experiment: one run lost its evaluation; a re-run redoes only that, training nothing
     shutil.rmtree(out / "runs" / "cv-all-s1" / "eval")
-
-    def no_training(*args, **kwargs):
-        raise AssertionError("finished runs must not be trained again")
-
-    monkeypatch.setattr("trajflow_pipeline.stages.train.train", no_training)
+    trained = {path: path.read_bytes() for path in out.glob("runs/*/train_log.parquet")}
     run_experiment(config, tmp_path / "exp", quiet=True)
     assert (out / "runs" / "cv-all-s1" / "eval" / "metrics.parquet").exists()
+    assert {path: path.read_bytes() for path in out.glob("runs/*/train_log.parquet")} == trained, \
+        "finished runs must not be trained again"
     bad = tmp_path / "bad.toml"
     bad.write_text(config.read_text().replace("[eval]", "[eval]\nbogus = 1"))
     with pytest.raises(UsageError, match="unknown key"):
@@ -158,3 +156,31 @@ def test_experiment_runs_every_model_and_resumes(tmp_path: Path, monkeypatch: py
     changed.write_text(config.read_text().replace("samples = 10", "samples = 11"))
     with pytest.raises(UsageError, match="made with a different config"):
         run_experiment(changed, out, quiet=True)
+
+
+def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stopped_runs(tmp_path: Path) -> None:
+    """A config that only raises an epoch budget may resume an experiment: the runs that budget stopped continue
+    and are evaluated again, ending as a fresh experiment with the raised budget would; other runs stay."""
+    config = write_tiny_experiment(tmp_path, ["cv", "trajflow-no-ae"], [0])
+    out = run_experiment(config, tmp_path / "exp", quiet=True)
+    cv_eval = (out / "runs" / "cv-all-s0" / "eval" / "eval.json").read_bytes()
+    flow_run = out / "runs" / "trajflow-no-ae-all-s0"
+    digest_before = json.loads((flow_run / "eval" / "eval.json").read_text())["model_digest"]
+    raised = tmp_path / "raised.toml"
+    raised.write_text("# four flow epochs instead of two\n" + config.read_text().replace(
+        '"train.flow_max_epochs=2"', '"train.flow_max_epochs=4"'))
+    run_experiment(raised, out, quiet=True)
+    assert (out / "config.toml").read_text() == raised.read_text()
+    assert (out / "runs" / "cv-all-s0" / "eval" / "eval.json").read_bytes() == cv_eval
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 4
+    evaluated = json.loads((flow_run / "eval" / "eval.json").read_text())
+    assert evaluated["model_digest"] != digest_before
+    assert evaluated["model_digest"] == json.loads((flow_run / "run.json").read_text())["rank_weight_digests"][0]
+    fresh = run_experiment(raised, tmp_path / "fresh", quiet=True)
+    columns = ["run", "metric", "value", "agent_index"]
+    assert pl.read_parquet(out / "metrics.parquet").select(columns).equals(
+        pl.read_parquet(fresh / "metrics.parquet").select(columns))
+    lowered = tmp_path / "lowered.toml"
+    lowered.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=1"'))
+    with pytest.raises(UsageError, match="only epoch budgets may be raised"):
+        run_experiment(lowered, out, quiet=True)

@@ -79,7 +79,8 @@ def test_parallel_equals_serial() -> None:
         np.testing.assert_array_equal(results[index][0], fit_and_score(task, 3 + index)[0])
 
 
-def test_rome_pca_fallback_is_counted_not_printed(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+def test_rome_pca_fallback_is_counted_not_printed(monkeypatch: pytest.MonkeyPatch,
+                                                  capsys: pytest.CaptureFixture) -> None:
     """ROME prints a line whenever it re-runs a failed PCA with jitter; that line must not reach stdout (it would
     break progress bars and tables): the fits go on, and one note on stderr says how many needed the fallback."""
     import rome.ROME as rome_module

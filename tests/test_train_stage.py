@@ -24,6 +24,7 @@ from trajflow_pipeline.model.normalize import target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
 from train_fakes import FakeProblems
 from trajflow_pipeline.stages import train as train_stage
+from trajflow_pipeline.stages.runs import open_run
 from trajflow_pipeline.stages.train import train
 
 FAST = ["train.ae_min_epochs=0", "train.flow_min_epochs=0"]
@@ -325,3 +326,81 @@ def test_draws_rome_cannot_fit_do_not_end_a_val_nll_run(monkeypatch: pytest.Monk
     assert log_of(run).filter(pl.col("stage") == "flow").get_column("val_nll").null_count() == 3
     best = json.loads((run / "run.json").read_text())["best"]["flow"]
     assert best["epoch"] == 3 and best["selected_by"].startswith("last epoch")
+
+
+def budget_options(ae: int, flow: int, *extra: str) -> dict[str, object]:
+    """Train options of a tiny TrajFlow run with the given epoch budgets."""
+    return dict(model="trajflow", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.ae_batch_size=32",
+                                                         "train.flow_batch_size=32", f"train.ae_max_epochs={ae}",
+                                                         f"train.flow_max_epochs={flow}", *extra])
+
+
+def same_run(a: Path, b: Path) -> None:
+    """The two runs trained the same: identical final weights and loss curves."""
+    wa, wb = final_weights(a), final_weights(b)
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    curve = ["stage", "epoch", "train_loss", "val_loss", "lr", "skipped_steps"]
+    assert log_of(a).select(curve).equals(log_of(b).select(curve))
+
+
+def test_raised_budgets_give_the_run_the_larger_budget_would_have(monkeypatch: pytest.MonkeyPatch,
+                                                                  tmp_path: Path) -> None:
+    """Resuming a finished run with a larger flow budget continues the flow from its last epoch; a larger
+    autoencoder budget continues the autoencoder and trains the flow anew. Either way the run ends as a run with
+    those budgets from the start would have, and an extension interrupted half-way resumes to the same."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+    run = train(data, tmp_path / "run", **budget_options(2, 2))
+    assert (run / "checkpoints" / "end-autoencoder.pt").is_file() and (run / "checkpoints" / "end-flow.pt").is_file()
+
+    train(data, run, resume=True, **budget_options(2, 4))
+    same_run(run, train(data, tmp_path / "ae2-flow4", **budget_options(2, 4)))
+    assert load_config(run / "config.toml").train.flow_max_epochs == 4
+    assert json.loads((run / "run.json").read_text())["status"] == "finished"
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == ("flow", 2):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, run, resume=True, **budget_options(4, 4))
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    # Half-way: the old final model is still there, but the run is not finished, so nothing evaluates it.
+    assert json.loads((run / "run.json").read_text())["status"] == "training"
+    assert (run / "final" / "model.safetensors").is_file()
+    with pytest.raises(TrajflowError, match="did not finish"):
+        open_run(run)
+    train(data, run, resume=True, quiet=True)      # the saved config already holds the new budgets
+    same_run(run, train(data, tmp_path / "ae4-flow4", **budget_options(4, 4)))
+    assert json.loads((run / "run.json").read_text())["best"]["autoencoder"]["epoch"] == 4
+
+
+def test_a_stage_that_stopped_early_is_not_retrained(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 80, 24)
+    early = ("train.flow_patience=1", "train.flow_lr=0.5")
+    run = train(tmp_path / "data", tmp_path / "run", **budget_options(1, 8, *early))
+    flow_epochs = log_of(run).filter(pl.col("stage") == "flow").height
+    assert flow_epochs < 8, "the settings should make the flow stop early"
+    before = (run / "final" / "model.safetensors").read_bytes()
+    info = json.loads((run / "run.json").read_text())
+    train(tmp_path / "data", run, resume=True, **budget_options(1, 20, *early))
+    assert (run / "final" / "model.safetensors").read_bytes() == before
+    assert json.loads((run / "run.json").read_text()) == info
+    assert log_of(run).filter(pl.col("stage") == "flow").height == flow_epochs
+    assert load_config(run / "config.toml").train.flow_max_epochs == 20
+
+
+def test_only_raised_budgets_may_change_on_resume(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 64, 16)
+    data = tmp_path / "data"
+    run = train(data, tmp_path / "run", **budget_options(2, 2))
+    with pytest.raises(UsageError, match="flow_max_epochs.*only train.ae_max_epochs / train.flow_max_epochs"):
+        train(data, run, resume=True, **budget_options(2, 1))
+    with pytest.raises(UsageError, match="flow_lr"):
+        train(data, run, resume=True, **budget_options(2, 4, "train.flow_lr=3e-4"))
+    # A run whose flow finished before stage-end states were kept cannot be extended exactly: it says so.
+    (run / "checkpoints" / "end-flow.pt").unlink()
+    with pytest.raises(UsageError, match="end-flow.pt is missing.*new directory"):
+        train(data, run, resume=True, **budget_options(2, 4))
+    assert load_config(run / "config.toml").train.flow_max_epochs == 2  # a refused change leaves the run as it was

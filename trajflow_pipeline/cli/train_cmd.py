@@ -30,7 +30,10 @@ def train_command(
     seed: Annotated[Optional[int], typer.Option(help="Random seed (train.seed).")] = None,
     device: Annotated[Optional[str], typer.Option(help="auto, cpu, cuda or cuda:N (train.device).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last "
-                                                          "checkpoint.")] = False,
+                                                          "checkpoint. With --set train.flow_max_epochs=N or "
+                                                          "train.ae_max_epochs=N above the run's, a stage its "
+                                                          "old budget stopped continues (finished runs too).")]
+    = False,
     quiet: Quiet = False,
 ) -> None:
     """Train a model: autoencoder pre-training, then the conditional flow (early stopping on the val split)."""

@@ -120,7 +120,10 @@ def _rome_messages_counted() -> Iterator[list[str]]:
     import rome.ROME as rome_module
 
     messages: list[str] = []
-    rome_module.print = lambda *args, **kwargs: messages.append(" ".join(str(a) for a in args))  # type: ignore[attr-defined]
+    def collect(*args: object, **kwargs: object) -> None:
+        messages.append(" ".join(str(a) for a in args))
+
+    rome_module.print = collect  # type: ignore[attr-defined]
     try:
         yield messages
     finally:
@@ -169,7 +172,8 @@ def _distinct_candidates_scored_once() -> Iterator[None]:
         rome_module._silhouette_multiple_clusterings = select
 
 
-def _run_batch(batch: list[tuple[int, RomeTask]], base_seed: int) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
+def _run_batch(batch: list[tuple[int, RomeTask]],
+               base_seed: int) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
     """Worker entry point (top level, so 'spawn' can import it): run a batch of (index, task) pairs."""
     return [(index, _fit_and_score(task, base_seed + index)) for index, task in batch]
 

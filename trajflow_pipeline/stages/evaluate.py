@@ -9,8 +9,9 @@ Writes, atomically, ``RUN/eval/``:
                               sample_id, aggregate (True on the one mean row per metric, as the paper averages;
                               the other rows are per agent, or per joint group / identical-input group);
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
-                              seconds, date, trajflow version, data fingerprint, the run's resolved config, and
-                              ``horizon`` (below) with any ``warnings``.
+                              seconds, date, trajflow version, data fingerprint, the run's resolved config, the
+                              digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
+                              whose final model has changed since), and ``horizon`` (below) with any ``warnings``.
 
 Horizons. The metrics compare the predictions with the ground truth over the dataset's ``n_future`` steps.
 ``--steps S`` below it evaluates only the first S steps: allowed (a shorter-horizon evaluation is a legitimate
@@ -389,6 +390,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "problems": len(problems), "steps": int(trajectories.shape[2]), "device": str(torch_device),
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "data_fingerprint": problems.fingerprint, "config": run.config,
+        "model_digest": run.weights_digest,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
         **_group_counts(problems, horizon.evaluated, options.metrics),
     }

@@ -22,7 +22,10 @@ An experiment config is TOML::
     extended_horizon = true              # also *_ext metrics over each sample's n_future_max (rounD)
 
 Runs land in ``EXP/runs/<model>-<fold>-s<seed>/``. Re-running the same command skips finished runs and resumes an
-interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work.
+interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work. The
+config may change between calls only by raising epoch budgets (``train.ae_max_epochs`` / ``train.flow_max_epochs``
+in ``[train] set`` or ``[models.*] set``; comments, name and description are free): runs their old budget stopped
+then continue from their last epoch (see :mod:`trajflow_pipeline.stages.train`) and are evaluated again.
 ``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
 
 Several processes can work on one experiment directory: ``--jobs N`` starts N workers, and the same command may
@@ -51,12 +54,14 @@ import polars as pl
 from ..data import list_folds
 from ..errors import TrajflowError, UsageError
 from ..metrics.parallel import resolve_workers
-from ..model.config import MODEL_NAMES, load_config
+from ..model.config import MODEL_NAMES, RunConfig, load_config
 from ..schemas import open_dataset
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
 from ..util.progress import console
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
+from .runs import weights_digest
+from .train import CONFIG_FILE, RUN_FILE, budget_raise
 
 INGESTS = ("synthetic-bimodal", "eth-ucy")
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
@@ -223,8 +228,7 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     out = Path(out)
     text = Path(config_path).read_text()
     if (out / "config.toml").exists() and (out / "config.toml").read_text() != text:
-        raise UsageError(f"{out}: this experiment directory was made with a different config "
-                         f"({out / 'config.toml'}); resuming would mix settings. Use a new -o, or delete it")
+        _check_budgets_only(out / "config.toml", config, quiet)
     data = _ensure_data(config, quiet)
     open_dataset(data)
     plan = [run_name(*key) for key in _plan(config, data)]
@@ -243,6 +247,37 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     return out
 
 
+def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool) -> None:
+    """Accept a config that differs from the one the experiment was made with (`saved_path`) only by raised epoch
+    budgets (and comments, name or description); anything else would mix settings in one directory."""
+    different = UsageError(f"{saved_path.parent}: this experiment directory was made with a different config "
+                           f"({saved_path}); resuming would mix settings (only epoch budgets may be raised). "
+                           f"Use a new -o, or delete it")
+    try:
+        saved = load_experiment(saved_path)
+    except UsageError:
+        raise different from None
+    protocol = {"name": "", "train_overrides": (), "model_overrides": {}, "source": {}}
+    if replace(saved, **protocol) != replace(config, **protocol):
+        raise different
+    raised: dict[str, tuple[int, int]] = {}
+    for model in config.models:
+        change = budget_raise(_run_config(saved, model), _run_config(config, model))
+        if change is None:
+            raise different
+        raised.update(change)
+    if raised and not quiet:
+        console.print("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new)
+                                                          in raised.items())
+                      + "): runs their old budget stopped continue from their last epoch and are evaluated again")
+
+
+def _run_config(config: ExperimentConfig, model: str) -> RunConfig:
+    """The training config the experiment gives `model`'s runs (the seed aside)."""
+    return load_config(overrides=[*config.train_overrides, *config.model_overrides.get(model, ()),
+                                  f"model.name={model}"])
+
+
 def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, int]]:
     """(model, fold, seed) of every run, in the order they are worked on: model by model."""
     folds = _folds(config, data)
@@ -250,13 +285,34 @@ def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, i
 
 
 def _finished(run_dir: Path) -> bool:
-    return (run_dir / EVAL_DIR / "metrics.parquet").exists()
+    """Trained, and evaluated on its current final model (a run whose budget was raised is neither until its new
+    model is trained and evaluated)."""
+    if not (run_dir / EVAL_DIR / "metrics.parquet").exists():
+        return False
+    try:
+        info = json.loads((run_dir / RUN_FILE).read_text())
+        evaluated = json.loads((run_dir / EVAL_DIR / "eval.json").read_text()).get("model_digest")
+    except (OSError, ValueError):
+        return False
+    current = weights_digest(info)
+    return info.get("status") == "finished" and (evaluated is None or current is None or evaluated == current)
+
+
+def _done(run_dir: Path, overrides: list[str]) -> bool:
+    """Finished (see `_finished`) with the config the experiment now gives it (its budgets were not raised)."""
+    if not _finished(run_dir):
+        return False
+    saved_path = run_dir / CONFIG_FILE
+    if not saved_path.is_file():
+        return True
+    saved = load_config(saved_path)
+    return load_config(overrides=overrides, base=saved) == saved
 
 
 def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool, worker: str = "",
           eval_options: EvalOptions | None = None) -> None:
     """Go through the plan and do each run that is neither finished nor claimed by another process."""
-    from .train import FINAL_DIR, train
+    from .train import train
 
     plan = _plan(config, data)
     runs = [f"runs/{run_name(*key)}" for key in plan]
@@ -264,7 +320,8 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         run_dir = out / "runs" / name
-        if _finished(run_dir):
+        overrides = [*config.train_overrides, *config.model_overrides.get(model, ())]
+        if _done(run_dir, overrides):
             if not worker:  # N workers would say it N times
                 note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
             continue
@@ -273,16 +330,17 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
                 if not worker:  # sibling workers taking runs is expected; another command doing so is news
                     note(f"[dim]{index}/{len(plan)} {name}: in progress in another process, left to it[/]")
                 continue
-            if _finished(run_dir):  # finished by another process between the check and the claim
+            if _done(run_dir, overrides):  # finished by another process between the check and the claim
                 continue
             note(f"[bold]{index}/{len(plan)} {name}[/]")
-            overrides = [*config.train_overrides, *config.model_overrides.get(model, ())]
             inner_quiet = quiet or bool(worker)
-            if not (run_dir / FINAL_DIR).exists():
-                train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
-                      device=device, resume=run_dir.exists(), quiet=inner_quiet)
-            evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
-                     quiet=inner_quiet)
+            # Returns at once for a trained run; continues a run whose budget was raised (when that budget
+            # stopped it: otherwise its model, and so its evaluation, stay as they are).
+            train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
+                  device=device, resume=run_dir.exists(), quiet=inner_quiet)
+            if not _finished(run_dir):
+                evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
+                         quiet=inner_quiet)
         note(f"[green]{index}/{len(plan)} {name}: done[/]")
         _write_index(out, config, data, runs)
 

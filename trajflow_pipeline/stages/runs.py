@@ -28,6 +28,8 @@ class RunInfo:
     data_path: Path
     fingerprint: dict[str, str] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)
+    #: digest of the final weights (run.json; None for runs trained before trajflow recorded it)
+    weights_digest: str | None = None
 
     @property
     def name(self) -> str:
@@ -36,6 +38,12 @@ class RunInfo:
     def load_model(self, device: torch.device | str = "cpu") -> TrajectoryModel:
         """The final model of the run, checked to be of the run's model family."""
         return load_model(self.path / FINAL_DIR, expected_model=self.model, device=device)
+
+
+def weights_digest(info: dict[str, Any]) -> str | None:
+    """The digest of a finished run's final weights from its run.json (None when it was not recorded)."""
+    digests = info.get("rank_weight_digests")
+    return str(digests[0]) if isinstance(digests, list) and digests else None
 
 
 def open_run(run_dir: str | Path) -> RunInfo:
@@ -62,6 +70,7 @@ def open_run(run_dir: str | Path) -> RunInfo:
     try:
         return RunInfo(path=path, model=str(info["model"]), dataset=str(info["dataset"]), fold=info.get("fold"),
                        seed=int(info["seed"]), data_path=Path(info["data_dir"]),
-                       fingerprint=dict(info.get("fingerprint", {})), config=config)
+                       fingerprint=dict(info.get("fingerprint", {})), config=config,
+                       weights_digest=weights_digest(info))
     except (KeyError, TypeError, ValueError) as error:
         raise TrajflowError(f"{info_path}: incomplete run description ({error})") from None

@@ -19,6 +19,13 @@ keeps the weights of its best validation epoch. A step whose gradients are not f
 * ``final/model.safetensors``      -- the trained model (:func:`trajflow_pipeline.model.load_model`); ``final/``
                                       appears only when training has finished.
 
+Larger budgets: ``--resume`` may raise ``train.ae_max_epochs`` / ``train.flow_max_epochs`` (nothing else). A stage
+that the old budget stopped continues from its last epoch (``end-<stage>.pt``) and every later stage is trained
+again; a stage that stopped early is not affected. The run's previous final model and evaluation stay on disk
+until the new model replaces them, but run.json says "training" meanwhile, so nothing evaluates the old one as
+the new. Because every epoch's randomness comes from (seed, stage, epoch), the result is the run a larger budget
+would have given from the start (with ``train.flow_select = "val_nll"`` the old last epoch also had a check).
+
 Determinism: the shuffling and every random draw of an epoch come from generators seeded by (seed, stage, epoch,
 rank), so a resumed run replays exactly the epochs an uninterrupted one would, and a fixed seed gives the same loss
 curve on CPU. Under ``torchrun`` (RANK / WORLD_SIZE set) training runs with DistributedDataParallel: each rank
@@ -65,6 +72,8 @@ LOG_FILE = "train_log.parquet"
 STATE_FILE = "checkpoints/state.pt"
 #: The training state at the last epoch of a finished gradient stage, formatted with the stage name.
 STAGE_END_FILE = "checkpoints/end-{stage}.pt"
+#: Settings a resumed run may raise (its epoch budgets), with the gradient stage each one limits.
+BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow"}
 FINAL_DIR = "final"
 
 LOG_SCHEMA = {"epoch": pl.Int64, "stage": pl.String, "train_loss": pl.Float64, "val_loss": pl.Float64,
@@ -84,13 +93,14 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     `model`, `seed` and `device` override the config (``model.name``, ``train.seed``, ``train.device``); the
     config is the defaults, then `config_path` (TOML), then `overrides` (``section.key=value``). With `resume`, an
     interrupted run continues from its last checkpoint (its saved config is used; options that would change it are
-    refused) and a finished run is returned as is. Returns `run_dir`.
+    refused, except raised epoch budgets: see the module docstring) and a finished run is returned as is. Returns
+    `run_dir`.
     """
     tune_cpu_allocator()
     run_dir = Path(run_dir)
     dist = _DistContext.from_env()
-    config = _resolve_config(run_dir, config_path, overrides, model, seed, device, resume)
-    if resume and (run_dir / FINAL_DIR / "model.safetensors").is_file():
+    config, previous = _resolve_config(run_dir, config_path, overrides, model, seed, device, resume)
+    if resume and previous is None and _trained(run_dir):
         if dist.rank == 0 and not quiet:
             console.print(f"[dim]{run_dir}: already trained, nothing to resume[/]")
         return run_dir
@@ -100,7 +110,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
         data = _load_data(dataset_dir, fold, config)
         _check_same_data(run_dir, data, resume)
         session = _Session(run_dir=run_dir, config=config, data=data, device=torch_device, dist=dist, quiet=quiet,
-                           fold=fold)
+                           fold=fold, previous_config=previous)
         session.run(resume)
     finally:
         dist.stop()
@@ -110,22 +120,52 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
 # --------------------------------------------------------------------------------------------------- configuration
 
 def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Sequence[str], model: str | None,
-                    seed: int | None, device: str | None, resume: bool) -> RunConfig:
-    """The run's config: saved one on resume (refusing changes other than the device), else freshly resolved."""
+                    seed: int | None, device: str | None, resume: bool) -> tuple[RunConfig, RunConfig | None]:
+    """The run's config and, when a resume raises its epoch budgets, the config it was trained with so far (else
+    None). On resume the saved config is used; changes other than raised budgets and the device are refused."""
     if model is not None and model not in MODEL_NAMES:
         raise UsageError(f"unknown model {model!r}; choose one of {', '.join(MODEL_NAMES)}")
     saved_path = run_dir / CONFIG_FILE
     if resume and saved_path.is_file():
         saved = load_config(saved_path)
         requested = _with_options(load_config(config_path, overrides, base=saved), model, seed, None)
-        if requested != saved:
+        if requested == saved:
+            return _with_options(saved, None, None, device), None
+        raised = budget_raise(saved, requested)
+        if raised is None:
             key = _first_difference(saved, requested)
             raise UsageError(f"{run_dir} was started with a different configuration ({key}); resume it without "
-                             f"changing options, or train into a new directory")
-        return _with_options(saved, None, None, device)
+                             f"changing options (only train.ae_max_epochs / train.flow_max_epochs may be raised), "
+                             f"or train into a new directory")
+        return _with_options(requested, None, None, device), saved
     if not resume and run_dir.exists() and any(run_dir.iterdir()):
         raise UsageError(f"{run_dir} already holds a run; pass --resume to continue it or choose a new directory")
-    return _with_options(load_config(config_path, overrides), model, seed, device).validate()
+    return _with_options(load_config(config_path, overrides), model, seed, device).validate(), None
+
+
+def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] | None:
+    """The epoch budgets `new` raises over `old` ({key: (old, new)}), or None when the two configs differ in
+    anything else (the device aside) or lower a budget; {} when they are the same run."""
+    old_train, new_train = replace(old.train, device="auto"), replace(new.train, device="auto")
+    unchanged = replace(new_train, **{key: getattr(old_train, key) for key in BUDGET_KEYS})
+    if old.model != new.model or unchanged != old_train:
+        return None
+    raised = {key: (getattr(old_train, key), getattr(new_train, key)) for key in BUDGET_KEYS
+              if getattr(new_train, key) != getattr(old_train, key)}
+    return None if any(after < before for before, after in raised.values()) else raised
+
+
+def _trained(run_dir: Path) -> bool:
+    """Whether the run has a final model that is current (run.json says finished; older runs without run.json
+    count by their final model alone)."""
+    if not (run_dir / FINAL_DIR / "model.safetensors").is_file():
+        return False
+    try:
+        return json.loads((run_dir / RUN_FILE).read_text()).get("status") == "finished"
+    except FileNotFoundError:
+        return True
+    except (OSError, ValueError) as error:
+        raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
 
 
 def _with_options(config: RunConfig, model: str | None, seed: int | None, device: str | None) -> RunConfig:
@@ -322,6 +362,8 @@ class _Session:
     best: dict[str, dict[str, float]] = field(default_factory=dict)
     skipped_total: int = 0
     started: str = field(default_factory=lambda: dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
+    #: the config the run was trained with so far, when this call raises its epoch budgets
+    previous_config: RunConfig | None = None
 
     @property
     def writer(self) -> bool:
@@ -333,7 +375,15 @@ class _Session:
         stage_index, progress = 0, _StageProgress()
         state_path = self.run_dir / STATE_FILE
         if resume and state_path.is_file():
-            stage_index, progress = self._restore(load_training_state(state_path, expected_model=self.model.name))
+            state = load_training_state(state_path, expected_model=self.model.name)
+            reopened = False
+            if self.previous_config is not None:
+                state, reopened = self._adopt_budget(state)
+                if int(state["stage_index"]) >= len(self.model.stages) and _trained(self.run_dir):
+                    return  # finished, and no stage the budgets limit was stopped by them
+            stage_index, progress = self._restore(state)
+            if reopened and self.writer:
+                self._write_run_info("training")
         elif self.writer:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
@@ -551,6 +601,45 @@ class _Session:
             "started": self.started,
         })
 
+    def _adopt_budget(self, state: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+        """Move the run from `previous_config` to the raised budgets of `config`: returns the training state to go
+        on from and whether a finished stage was reopened. The first finished stage whose budget was raised and
+        that its old budget stopped (not early stopping) continues from its end state; later stages follow anew.
+        The new config is saved with that state, so an interruption resumes the extended run."""
+        old = self.previous_config
+        assert old is not None
+        start, reopened = state, False
+        for index, stage in enumerate(self.model.stages[:int(state["stage_index"])]):
+            key = next((k for k, limited in BUDGET_KEYS.items() if limited == stage), None)
+            if key is None or getattr(self.config.train, key) <= getattr(old.train, key):
+                continue
+            end_path = self.run_dir / STAGE_END_FILE.format(stage=stage)
+            if not end_path.is_file():
+                raise UsageError(f"{self.run_dir}: its {stage} stage finished before trajflow kept stage-end states "
+                                 f"({end_path.name} is missing), so it cannot continue with a larger "
+                                 f"train.{key}; train into a new directory")
+            end = load_training_state(end_path, expected_model=self.model.name)
+            progress = _progress_from(end)
+            prefix = "ae" if stage == "autoencoder" else "flow"
+            min_epochs, patience = getattr(old.train, f"{prefix}_min_epochs"), getattr(old.train, f"{prefix}_patience")
+            if _should_stop(progress, min_epochs, patience):
+                self._say(f"{stage} stopped early at epoch {progress.epoch}: train.{key} = "
+                          f"{getattr(self.config.train, key)} changes nothing there")
+                continue
+            self._say(f"continuing {stage} after epoch {progress.epoch} (train.{key} {getattr(old.train, key)} -> "
+                      f"{getattr(self.config.train, key)}); the stages after it are trained again")
+            start, reopened = end, True
+            break
+        start = {**start, "config": self.config.to_json()}
+        if self.writer:
+            atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
+            save_training_state(self.run_dir / STATE_FILE, start)
+        return start, reopened
+
+    def _say(self, message: str) -> None:
+        if self.writer and not self.quiet:
+            console.print(f"[dim]{self.run_dir}: {message}[/]")
+
     def _restore(self, state: dict[str, Any]) -> tuple[int, _StageProgress]:
         saved = RunConfig.from_dict(json.loads(state["config"]))
         if replace(saved, train=replace(saved.train, device="auto")) != replace(
@@ -561,12 +650,7 @@ class _Session:
         self.best = dict(state["best"])
         self.skipped_total = int(state["skipped_total"])
         self.started = str(state["started"])
-        progress = _StageProgress(epoch=int(state["epoch"]), best_val=float(state["best_val"]),
-                                  best_epoch=int(state["best_epoch"]), bad_epochs=int(state["bad_epochs"]),
-                                  best_weights=state["best_weights"], optimizer=state["optimizer"],
-                                  scheduler=state["scheduler"],
-                                  selected_nll=float(state.get("selected_nll", math.inf)),
-                                  selected_epoch=int(state.get("selected_epoch", 0)))
+        progress = _progress_from(state)
         if self.writer and not self.quiet:
             console.print(f"[dim]resuming {self.run_dir}: stage {int(state['stage_index']) + 1}, "
                           f"after epoch {progress.epoch}[/]")
@@ -678,6 +762,15 @@ def _mean_loss(model: TrajectoryModel, stage: str, batch: SceneBatch, chunk: int
         count += len(idx)
     total, count = dist.sum([total, count], device)
     return total / count if count else math.nan
+
+
+def _progress_from(state: dict[str, Any]) -> _StageProgress:
+    """The stage bookkeeping stored in a training state."""
+    return _StageProgress(epoch=int(state["epoch"]), best_val=float(state["best_val"]),
+                          best_epoch=int(state["best_epoch"]), bad_epochs=int(state["bad_epochs"]),
+                          best_weights=state["best_weights"], optimizer=state["optimizer"],
+                          scheduler=state["scheduler"], selected_nll=float(state.get("selected_nll", math.inf)),
+                          selected_epoch=int(state.get("selected_epoch", 0)))
 
 
 def _should_stop(progress: _StageProgress, min_epochs: int, patience: int) -> bool:
