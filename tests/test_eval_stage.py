@@ -180,7 +180,14 @@ def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stoppe
     columns = ["run", "metric", "value", "agent_index"]
     assert pl.read_parquet(out / "metrics.parquet").select(columns).equals(
         pl.read_parquet(fresh / "metrics.parquet").select(columns))
+    # A run that cannot follow a raise (its flow's end state is gone) stops it before anything changes.
+    (flow_run / "checkpoints" / "end-flow.pt").unlink()
+    again = tmp_path / "again.toml"
+    again.write_text(raised.read_text().replace('"train.flow_max_epochs=4"', '"train.flow_max_epochs=6"'))
+    with pytest.raises(UsageError, match="cannot raise the budgets.*trajflow-no-ae-all-s0.*stage-end states"):
+        run_experiment(again, out, quiet=True)
+    assert (out / "config.toml").read_text() == raised.read_text()
     lowered = tmp_path / "lowered.toml"
     lowered.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=1"'))
-    with pytest.raises(UsageError, match="only epoch budgets may be raised"):
+    with pytest.raises(UsageError, match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets may be raised"):
         run_experiment(lowered, out, quiet=True)

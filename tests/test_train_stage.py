@@ -384,6 +384,7 @@ def test_a_stage_that_stopped_early_is_not_retrained(monkeypatch: pytest.MonkeyP
     assert flow_epochs < 8, "the settings should make the flow stop early"
     before = (run / "final" / "model.safetensors").read_bytes()
     info = json.loads((run / "run.json").read_text())
+    (run / "checkpoints" / "end-flow.pt").unlink()  # not needed: the log shows the stage stopped early
     train(tmp_path / "data", run, resume=True, **budget_options(1, 20, *early))
     assert (run / "final" / "model.safetensors").read_bytes() == before
     assert json.loads((run / "run.json").read_text()) == info
@@ -404,3 +405,57 @@ def test_only_raised_budgets_may_change_on_resume(monkeypatch: pytest.MonkeyPatc
     with pytest.raises(UsageError, match="end-flow.pt is missing.*new directory"):
         train(data, run, resume=True, **budget_options(2, 4))
     assert load_config(run / "config.toml").train.flow_max_epochs == 2  # a refused change leaves the run as it was
+    (run / "checkpoints" / "state.pt").unlink()
+    with pytest.raises(UsageError, match="state.pt is missing"):
+        train(data, run, resume=True, **budget_options(2, 4))
+
+
+def test_a_raise_interrupted_while_saving_is_completed_by_the_next_resume(monkeypatch: pytest.MonkeyPatch,
+                                                                          tmp_path: Path) -> None:
+    """Killed after the raise saved run.json and the checkpoint but not config.toml: the run must not look
+    finished with the old model, and a plain --resume finishes the raise."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+    run = train(data, tmp_path / "run", **budget_options(2, 2))
+    real_write = train_stage.atomic_write_text
+
+    def killed_at_config(path: Path, text: str) -> None:
+        if Path(path).name == "config.toml":
+            raise KeyboardInterrupt
+        real_write(path, text)
+
+    monkeypatch.setattr(train_stage, "atomic_write_text", killed_at_config)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, run, resume=True, **budget_options(2, 4))
+    monkeypatch.setattr(train_stage, "atomic_write_text", real_write)
+    assert json.loads((run / "run.json").read_text())["status"] == "training"
+    assert load_config(run / "config.toml").train.flow_max_epochs == 2
+    train(data, run, resume=True, quiet=True)
+    assert load_config(run / "config.toml").train.flow_max_epochs == 4
+    same_run(run, train(data, tmp_path / "ae2-flow4", **budget_options(2, 4)))
+
+
+def test_a_raised_budget_with_val_nll_selection_keeps_what_a_longer_run_keeps(monkeypatch: pytest.MonkeyPatch,
+                                                                             tmp_path: Path) -> None:
+    """The check the end of the 3-epoch stage called for (epoch 3 is off the every-2 schedule) must not decide
+    what the 5-epoch continuation keeps: a fresh 5-epoch run never made it."""
+    install_fake_data(monkeypatch, 80, 24)
+
+    def options(flow: int) -> dict[str, object]:
+        return dict(model="trajflow-no-ae", quiet=True, overrides=[
+            *FAST, *TINY_MODEL, f"train.flow_max_epochs={flow}", "train.flow_batch_size=32",
+            "train.flow_select=val_nll", "train.flow_select_every=2", "train.flow_select_problems=10",
+            "train.flow_select_samples=20"])
+
+    # Scripted checks: the unscheduled one at epoch 3 would win if the continuation remembered it.
+    scripted = {2: -1.0, 3: -5.0, 4: -2.0, 5: -3.0}
+    monkeypatch.setattr(train_stage._Session, "_sample_nll", lambda self, batch, subset, epoch: scripted[epoch])
+    run = train(tmp_path / "data", tmp_path / "run", **options(3))
+    assert log_of(run).filter(pl.col("val_nll").is_not_null()).get_column("epoch").to_list() == [2, 3]
+    assert json.loads((run / "run.json").read_text())["best"]["flow"]["epoch"] == 3
+    train(tmp_path / "data", run, resume=True, **options(5))
+    whole = train(tmp_path / "data", tmp_path / "whole", **options(5))
+    a, b = final_weights(whole), final_weights(run)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    best = [json.loads((r / "run.json").read_text())["best"]["flow"] for r in (whole, run)]
+    assert best[0] == best[1] and best[0]["epoch"] == 5

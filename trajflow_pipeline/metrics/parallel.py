@@ -123,11 +123,15 @@ def _rome_messages_counted() -> Iterator[list[str]]:
     def collect(*args: object, **kwargs: object) -> None:
         messages.append(" ".join(str(a) for a in args))
 
+    shadowed = rome_module.__dict__.get("print")  # set only while another capture is active
     rome_module.print = collect  # type: ignore[attr-defined]
     try:
         yield messages
     finally:
-        del rome_module.print  # type: ignore[attr-defined]
+        if shadowed is None:
+            del rome_module.print  # type: ignore[attr-defined]
+        else:
+            rome_module.print = shadowed  # type: ignore[attr-defined]
 
 
 #: romepy versions whose candidate selection (_silhouette_multiple_clusterings) was read and tested here.

@@ -61,7 +61,7 @@ from ..util.claim import claim, claims_supported
 from ..util.progress import console
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
 from .runs import weights_digest
-from .train import CONFIG_FILE, RUN_FILE, budget_raise
+from .train import CONFIG_FILE, RUN_FILE, budget_raise, first_difference, raise_blocker
 
 INGESTS = ("synthetic-bimodal", "eth-ucy")
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
@@ -227,20 +227,26 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     config = load_experiment(config_path)
     out = Path(out)
     text = Path(config_path).read_text()
-    if (out / "config.toml").exists() and (out / "config.toml").read_text() != text:
+    changed = (out / "config.toml").exists() and (out / "config.toml").read_text() != text
+    if changed:
         _check_budgets_only(out / "config.toml", config, quiet)
     data = _ensure_data(config, quiet)
     open_dataset(data)
-    plan = [run_name(*key) for key in _plan(config, data)]
+    plan = _plan(config, data)
+    if changed:  # every run must be able to follow the raised budgets before anything changes
+        blockers = [b for model, fold, seed in plan
+                    if (b := raise_blocker(out / "runs" / run_name(model, fold, seed), _overrides(config, model)))]
+        if blockers:
+            raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
+                             + ". Use a new -o for the larger budget")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", text)
     if jobs == 1:
         _work(config, data, out, device=device, quiet=quiet)
     else:
         _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs)
-    runs = [f"runs/{name}" for name in plan]
-    _write_index(out, config, data, runs)
-    elsewhere = [name for name in plan if not _finished(out / "runs" / name)]
+    _write_index(out, config, data, plan)
+    elsewhere = [run_name(*key) for key in plan if not _done(out / "runs" / run_name(*key), _overrides(config, key[0]))]
     if elsewhere and not quiet:
         console.print(f"[yellow]{len(elsewhere)} run(s) are still in progress in another process[/] "
                       f"({', '.join(elsewhere)}); the index includes them once they finish")
@@ -250,21 +256,26 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
 def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool) -> None:
     """Accept a config that differs from the one the experiment was made with (`saved_path`) only by raised epoch
     budgets (and comments, name or description); anything else would mix settings in one directory."""
-    different = UsageError(f"{saved_path.parent}: this experiment directory was made with a different config "
-                           f"({saved_path}); resuming would mix settings (only epoch budgets may be raised). "
-                           f"Use a new -o, or delete it")
+    def different(what: str) -> UsageError:
+        return UsageError(f"{saved_path.parent}: this experiment directory was made with a different config "
+                          f"({saved_path}; {what}); resuming would mix settings (only epoch budgets may be raised). "
+                          f"Use a new -o, or delete it")
+
     try:
         saved = load_experiment(saved_path)
-    except UsageError:
-        raise different from None
+    except UsageError as error:
+        raise different(str(error)) from None
     protocol = {"name": "", "train_overrides": (), "model_overrides": {}, "source": {}}
-    if replace(saved, **protocol) != replace(config, **protocol):
-        raise different
+    before, after = vars(replace(saved, **protocol)), vars(replace(config, **protocol))
+    for key in before:
+        if before[key] != after[key]:
+            raise different(f"{key}: {before[key]!r} vs {after[key]!r}")
     raised: dict[str, tuple[int, int]] = {}
     for model in config.models:
-        change = budget_raise(_run_config(saved, model), _run_config(config, model))
+        before, after = _run_config(saved, model), _run_config(config, model)
+        change = budget_raise(before, after)
         if change is None:
-            raise different
+            raise different(f"{model}: {first_difference(before, after)}")
         raised.update(change)
     if raised and not quiet:
         console.print("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new)
@@ -272,10 +283,14 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
                       + "): runs their old budget stopped continue from their last epoch and are evaluated again")
 
 
+def _overrides(config: ExperimentConfig, model: str) -> list[str]:
+    """The `--set` overrides the experiment gives `model`'s runs."""
+    return [*config.train_overrides, *config.model_overrides.get(model, ())]
+
+
 def _run_config(config: ExperimentConfig, model: str) -> RunConfig:
     """The training config the experiment gives `model`'s runs (the seed aside)."""
-    return load_config(overrides=[*config.train_overrides, *config.model_overrides.get(model, ()),
-                                  f"model.name={model}"])
+    return load_config(overrides=[*_overrides(config, model), f"model.name={model}"])
 
 
 def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, int]]:
@@ -298,6 +313,15 @@ def _finished(run_dir: Path) -> bool:
     return info.get("status") == "finished" and (evaluated is None or current is None or evaluated == current)
 
 
+def _final_model(run_dir: Path) -> tuple[Any, Any] | None:
+    """What identifies the run's final model: when it was finished and its weights' digest (run.json)."""
+    try:
+        info = json.loads((run_dir / RUN_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return info.get("finished"), weights_digest(info)
+
+
 def _done(run_dir: Path, overrides: list[str]) -> bool:
     """Finished (see `_finished`) with the config the experiment now gives it (its budgets were not raised)."""
     if not _finished(run_dir):
@@ -315,12 +339,11 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
     from .train import train
 
     plan = _plan(config, data)
-    runs = [f"runs/{run_name(*key)}" for key in plan]
     note = (lambda message: console.print(f"{worker}{message}")) if not quiet else (lambda message: None)
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         run_dir = out / "runs" / name
-        overrides = [*config.train_overrides, *config.model_overrides.get(model, ())]
+        overrides = _overrides(config, model)
         if _done(run_dir, overrides):
             if not worker:  # N workers would say it N times
                 note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
@@ -336,13 +359,14 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
             inner_quiet = quiet or bool(worker)
             # Returns at once for a trained run; continues a run whose budget was raised (when that budget
             # stopped it: otherwise its model, and so its evaluation, stay as they are).
+            model_before = _final_model(run_dir)
             train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
                   device=device, resume=run_dir.exists(), quiet=inner_quiet)
-            if not _finished(run_dir):
+            if not _finished(run_dir) or _final_model(run_dir) != model_before:
                 evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
                          quiet=inner_quiet)
         note(f"[green]{index}/{len(plan)} {name}: done[/]")
-        _write_index(out, config, data, runs)
+        _write_index(out, config, data, plan)
 
 
 def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
@@ -397,11 +421,12 @@ def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, q
         sys.exit(130)
 
 
-def _write_index(out: Path, config: ExperimentConfig, data: Path, runs: list[str]) -> None:
-    """experiment.json and the concatenated metrics of the runs finished so far; one process at a time, so that
-    both files always describe the same runs."""
+def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tuple[str, str | None, int]]) -> None:
+    """experiment.json and the concatenated metrics of the runs finished so far (with the config the experiment
+    now gives them); one process at a time, so that both files always describe the same runs."""
+    runs = [f"runs/{run_name(*key)}" for key in plan]
     with claim(out / ".index.lock", wait=True):
-        finished = [r for r in runs if _finished(out / r)]
+        finished = [r for r, key in zip(runs, plan) if _done(out / r, _overrides(config, key[0]))]
         if finished:
             metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
                                 how="vertical_relaxed")

@@ -24,7 +24,8 @@ that the old budget stopped continues from its last epoch (``end-<stage>.pt``) a
 again; a stage that stopped early is not affected. The run's previous final model and evaluation stay on disk
 until the new model replaces them, but run.json says "training" meanwhile, so nothing evaluates the old one as
 the new. Because every epoch's randomness comes from (seed, stage, epoch), the result is the run a larger budget
-would have given from the start (with ``train.flow_select = "val_nll"`` the old last epoch also had a check).
+would have given from the start (with ``train.flow_select = "val_nll"``, the end state leaves out the sample-based
+check that only the end of the stage called for, which a longer run would not have made).
 
 Determinism: the shuffling and every random draw of an epoch come from generators seeded by (seed, stage, epoch,
 rank), so a resumed run replays exactly the epochs an uninterrupted one would, and a fixed seed gives the same loss
@@ -110,7 +111,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
         data = _load_data(dataset_dir, fold, config)
         _check_same_data(run_dir, data, resume)
         session = _Session(run_dir=run_dir, config=config, data=data, device=torch_device, dist=dist, quiet=quiet,
-                           fold=fold, previous_config=previous)
+                           fold=fold)
         session.run(resume)
     finally:
         dist.stop()
@@ -133,7 +134,7 @@ def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Se
             return _with_options(saved, None, None, device), None
         raised = budget_raise(saved, requested)
         if raised is None:
-            key = _first_difference(saved, requested)
+            key = first_difference(saved, requested)
             raise UsageError(f"{run_dir} was started with a different configuration ({key}); resume it without "
                              f"changing options (only train.ae_max_epochs / train.flow_max_epochs may be raised), "
                              f"or train into a new directory")
@@ -153,6 +154,30 @@ def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] |
     raised = {key: (getattr(old_train, key), getattr(new_train, key)) for key in BUDGET_KEYS
               if getattr(new_train, key) != getattr(old_train, key)}
     return None if any(after < before for before, after in raised.values()) else raised
+
+
+def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
+    """Why the run in `run_dir` cannot take `overrides` (a config change an experiment asks for), or None when it
+    can: the same config, raised budgets it can follow, or no run yet. Read from its files, without loading data
+    or weights, so an experiment can check all its runs before it changes anything."""
+    saved_path = run_dir / CONFIG_FILE
+    if not saved_path.is_file():
+        return None
+    saved = load_config(saved_path)
+    requested = load_config(overrides=overrides, base=saved)
+    raised = budget_raise(saved, requested)
+    if raised is None:
+        return f"{run_dir}: {first_difference(saved, requested)} (only epoch budgets may be raised)"
+    log = pl.read_parquet(run_dir / LOG_FILE) if (run_dir / LOG_FILE).is_file() else pl.DataFrame(schema=LOG_SCHEMA)
+    stages = log.get_column("stage").to_list()
+    for key, (old_max, _) in raised.items():
+        stage = BUDGET_KEYS[key]
+        later = any(s != stage for s in stages[stages.index(stage):]) if stage in stages else False
+        finished = later or (stage == "flow" and _trained(run_dir))
+        if finished and stages.count(stage) >= old_max and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
+            return (f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states, so it cannot "
+                    f"continue with a larger train.{key}")
+    return None
 
 
 def _trained(run_dir: Path) -> bool:
@@ -179,7 +204,8 @@ def _with_options(config: RunConfig, model: str | None, seed: int | None, device
     return replace(config, train=train_cfg).validate()
 
 
-def _first_difference(a: RunConfig, b: RunConfig) -> str:
+def first_difference(a: RunConfig, b: RunConfig) -> str:
+    """The first setting in which two configs differ, as "section.key: a vs b"."""
     left, right = a.to_dict(), b.to_dict()
     for section in left:
         for key in left[section]:
@@ -362,8 +388,6 @@ class _Session:
     best: dict[str, dict[str, float]] = field(default_factory=dict)
     skipped_total: int = 0
     started: str = field(default_factory=lambda: dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
-    #: the config the run was trained with so far, when this call raises its epoch budgets
-    previous_config: RunConfig | None = None
 
     @property
     def writer(self) -> bool:
@@ -376,14 +400,18 @@ class _Session:
         state_path = self.run_dir / STATE_FILE
         if resume and state_path.is_file():
             state = load_training_state(state_path, expected_model=self.model.name)
-            reopened = False
-            if self.previous_config is not None:
-                state, reopened = self._adopt_budget(state)
-                if int(state["stage_index"]) >= len(self.model.stages) and _trained(self.run_dir):
-                    return  # finished, and no stage the budgets limit was stopped by them
+            state, reopened, adopted = self._follow_budget(state)
+            if state is None:
+                return  # finished, and no stage a raised budget limits was stopped by its old one
             stage_index, progress = self._restore(state)
-            if reopened and self.writer:
-                self._write_run_info("training")
+            if self.writer and adopted:  # run.json first: an interruption now cannot look finished
+                if reopened:
+                    self._write_run_info("training")
+                save_training_state(state_path, state)
+                atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
+        elif resume and (self.run_dir / FINAL_DIR).exists():
+            raise UsageError(f"{self.run_dir}: {STATE_FILE} is missing, so this run cannot be continued or given a "
+                             f"larger budget; train into a new directory")
         elif self.writer:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
@@ -451,6 +479,8 @@ class _Session:
         epoch_task = bars.add_task(f"{stage}", total=max_epochs, completed=progress.epoch, status="")
         batch_task = bars.add_task("  batches", total=n_batches, status="")
         stop = progress.epoch >= max_epochs or _should_stop(progress, min_epochs, patience)
+        #: the selection before a sample-based check that only the stage's end called for (see below)
+        unscheduled: tuple[float, int, dict[str, Tensor] | None] | None = None
         while not stop:
             epoch = progress.epoch + 1
             start = time.perf_counter()
@@ -498,6 +528,8 @@ class _Session:
                     save_model(self.model, self.run_dir / f"checkpoints/lowest-val-loss-{stage}.safetensors",
                                extra={"stage": stage, "epoch": epoch, "val_loss": val_loss})
                 if epoch % cfg.flow_select_every == 0 or stop:
+                    if epoch % cfg.flow_select_every:
+                        unscheduled = (progress.selected_nll, progress.selected_epoch, progress.best_weights)
                     val_nll = self._sample_nll(val_batch, select_subset, epoch)
                     keep = math.isfinite(val_nll) and val_nll < progress.selected_nll
                     if keep:
@@ -519,8 +551,13 @@ class _Session:
             if _epoch_hook is not None:
                 _epoch_hook(stage, epoch)
         bars.remove_task(batch_task)
-        # The stage's last epoch, before its best weights are loaded: a larger budget continues from here.
-        self._checkpoint(index, progress, STAGE_END_FILE.format(stage=stage))
+        # The stage's last epoch, before its best weights are loaded: a larger budget continues from here, as if
+        # the stage had gone on, so without the check that only the end of the stage called for.
+        end = progress
+        if unscheduled is not None:
+            end = replace(progress, selected_nll=unscheduled[0], selected_epoch=unscheduled[1],
+                          best_weights=unscheduled[2])
+        self._checkpoint(index, end, STAGE_END_FILE.format(stage=stage))
         if progress.best_weights is not None:
             self.model.load_state_dict(progress.best_weights)
         self.best[stage] = {"epoch": progress.best_epoch, "val_loss": progress.best_val}
@@ -601,17 +638,46 @@ class _Session:
             "started": self.started,
         })
 
-    def _adopt_budget(self, state: dict[str, Any]) -> tuple[dict[str, Any], bool]:
-        """Move the run from `previous_config` to the raised budgets of `config`: returns the training state to go
-        on from and whether a finished stage was reopened. The first finished stage whose budget was raised and
-        that its old budget stopped (not early stopping) continues from its end state; later stages follow anew.
-        The new config is saved with that state, so an interruption resumes the extended run."""
-        old = self.previous_config
-        assert old is not None
-        start, reopened = state, False
-        for index, stage in enumerate(self.model.stages[:int(state["stage_index"])]):
+    def _follow_budget(self, state: dict[str, Any]) -> tuple[dict[str, Any] | None, bool, bool]:
+        """Reconcile the checkpoint with the run's config when their epoch budgets differ: returns the training state
+        to go on from (None when the run is finished and stays as it is), whether a finished stage was reopened,
+        and whether that state and the config must be saved before training goes on.
+
+        A config that raises the budgets of the checkpoint's moves the run to them (`_reopen`). A checkpoint that
+        raises the config's is an earlier raise whose config.toml was not yet written: the run goes on with it.
+        Any other difference is an error."""
+        trained = RunConfig.from_dict(json.loads(state["config"]))
+        device = self.config.train.device
+        if replace(trained, train=replace(trained.train, device=device)) == self.config:
+            return state, False, False
+        if budget_raise(self.config, trained):
+            self.config = replace(trained, train=replace(trained.train, device=device))
+            self._say("continuing the larger budget an interrupted call gave this run")
+            return state, False, True
+        if budget_raise(trained, self.config) is None:
+            raise TrajflowError(f"{self.run_dir / STATE_FILE}: checkpoint does not match {CONFIG_FILE}")
+        start, reopened = self._reopen(state, trained)
+        start = {**start, "config": self.config.to_json()}
+        if not reopened and int(start["stage_index"]) >= len(self.model.stages) and _trained(self.run_dir):
+            if self.writer:
+                save_training_state(self.run_dir / STATE_FILE, start)
+                atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
+            return None, False, False
+        return start, reopened, True
+
+    def _reopen(self, state: dict[str, Any], trained: RunConfig) -> tuple[dict[str, Any], bool]:
+        """The state to continue from under the raised budgets of `config` over `trained`: the end state of the first
+        finished stage whose budget was raised and that its old budget stopped (not early stopping), and True; else
+        `state` and False. Stages after a reopened one are trained again from their start."""
+        log_stages = [row["stage"] for row in state["log"]]
+        for stage in self.model.stages[:int(state["stage_index"])]:
             key = next((k for k, limited in BUDGET_KEYS.items() if limited == stage), None)
-            if key is None or getattr(self.config.train, key) <= getattr(old.train, key):
+            if key is None or getattr(self.config.train, key) <= getattr(trained.train, key):
+                continue
+            old_max, new_max = getattr(trained.train, key), getattr(self.config.train, key)
+            if log_stages.count(stage) < old_max:
+                self._say(f"{stage} stopped early ({log_stages.count(stage)} of {old_max} epochs): "
+                          f"train.{key} = {new_max} changes nothing there")
                 continue
             end_path = self.run_dir / STAGE_END_FILE.format(stage=stage)
             if not end_path.is_file():
@@ -619,32 +685,24 @@ class _Session:
                                  f"({end_path.name} is missing), so it cannot continue with a larger "
                                  f"train.{key}; train into a new directory")
             end = load_training_state(end_path, expected_model=self.model.name)
-            progress = _progress_from(end)
             prefix = "ae" if stage == "autoencoder" else "flow"
-            min_epochs, patience = getattr(old.train, f"{prefix}_min_epochs"), getattr(old.train, f"{prefix}_patience")
-            if _should_stop(progress, min_epochs, patience):
-                self._say(f"{stage} stopped early at epoch {progress.epoch}: train.{key} = "
-                          f"{getattr(self.config.train, key)} changes nothing there")
+            min_epochs, patience = getattr(trained.train, f"{prefix}_min_epochs"), getattr(trained.train,
+                                                                                          f"{prefix}_patience")
+            if _should_stop(_progress_from(end), min_epochs, patience):
+                self._say(f"{stage} stopped early at its last epoch ({old_max}): train.{key} = {new_max} changes "
+                          "nothing there")
                 continue
-            self._say(f"continuing {stage} after epoch {progress.epoch} (train.{key} {getattr(old.train, key)} -> "
-                      f"{getattr(self.config.train, key)}); the stages after it are trained again")
-            start, reopened = end, True
-            break
-        start = {**start, "config": self.config.to_json()}
-        if self.writer:
-            atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
-            save_training_state(self.run_dir / STATE_FILE, start)
-        return start, reopened
+            self._say(f"continuing {stage} after epoch {old_max} (train.{key} {old_max} -> {new_max}); the stages "
+                      "after it are trained again")
+            return end, True
+        return state, False
 
     def _say(self, message: str) -> None:
         if self.writer and not self.quiet:
             console.print(f"[dim]{self.run_dir}: {message}[/]")
 
     def _restore(self, state: dict[str, Any]) -> tuple[int, _StageProgress]:
-        saved = RunConfig.from_dict(json.loads(state["config"]))
-        if replace(saved, train=replace(saved.train, device="auto")) != replace(
-                self.config, train=replace(self.config.train, device="auto")):
-            raise TrajflowError(f"{self.run_dir / STATE_FILE}: checkpoint does not match {CONFIG_FILE}")
+        """Load a training state (already reconciled with the config by `_follow_budget`)."""
         self.model.load_state_dict(state["weights"])
         self.log = list(state["log"])
         self.best = dict(state["best"])
