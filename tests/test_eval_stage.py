@@ -191,3 +191,25 @@ def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stoppe
     lowered.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=1"'))
     with pytest.raises(UsageError, match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets may be raised"):
         run_experiment(lowered, out, quiet=True)
+
+
+def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) -> None:
+    """By the weights' digest; for evaluations from before digests were recorded, by the dates."""
+    from trajflow_pipeline.stages.experiment import _finished
+
+    run = tmp_path / "run"
+    (run / "eval").mkdir(parents=True)
+    pl.DataFrame({"metric": ["min_ade"], "value": [0.1]}).write_parquet(run / "eval" / "metrics.parquet")
+
+    def state(status: str, digest: str | None, evaluated: str | None, date: str) -> bool:
+        (run / "run.json").write_text(json.dumps({"status": status, "finished": "2026-11-30T10:00:00+00:00",
+                                                  "rank_weight_digests": [digest] if digest else None}))
+        (run / "eval" / "eval.json").write_text(json.dumps({"model_digest": evaluated, "date": date}))
+        return _finished(run)
+
+    later, earlier = "2026-11-30T10:05:00.5+00:00", "2026-11-30T09:55:00.5+00:00"
+    assert state("finished", "a", "a", earlier)          # the digest decides when both are known
+    assert not state("finished", "b", "a", later)
+    assert not state("training", "a", "a", later)        # a raised budget is being trained
+    assert state("finished", "b", None, later)           # an old evaluation made after the model was finished
+    assert not state("finished", "b", None, earlier)     # ... or before it: stale

@@ -37,6 +37,7 @@ from parallel runs than from threads.
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import multiprocessing
 import multiprocessing.connection
@@ -306,11 +307,19 @@ def _finished(run_dir: Path) -> bool:
         return False
     try:
         info = json.loads((run_dir / RUN_FILE).read_text())
-        evaluated = json.loads((run_dir / EVAL_DIR / "eval.json").read_text()).get("model_digest")
+        evaluation = json.loads((run_dir / EVAL_DIR / "eval.json").read_text())
     except (OSError, ValueError):
         return False
-    current = weights_digest(info)
-    return info.get("status") == "finished" and (evaluated is None or current is None or evaluated == current)
+    if info.get("status") != "finished":
+        return False
+    evaluated, current = evaluation.get("model_digest"), weights_digest(info)
+    if evaluated is not None and current is not None:
+        return evaluated == current
+    # Evaluations from before digests were recorded: current unless made before the model was finished.
+    try:
+        return dt.datetime.fromisoformat(evaluation["date"]) >= dt.datetime.fromisoformat(info["finished"])
+    except (KeyError, TypeError, ValueError):
+        return True
 
 
 def _final_model(run_dir: Path) -> tuple[Any, Any] | None:
