@@ -670,7 +670,7 @@ class _Session:
         finished stage whose budget was raised and that its old budget stopped (not early stopping), and True; else
         `state` and False. Stages after a reopened one are trained again from their start."""
         log_stages = [row["stage"] for row in state["log"]]
-        for stage in self.model.stages[:int(state["stage_index"])]:
+        for index, stage in enumerate(self.model.stages[:int(state["stage_index"])]):
             key = next((k for k, limited in BUDGET_KEYS.items() if limited == stage), None)
             if key is None or getattr(self.config.train, key) <= getattr(trained.train, key):
                 continue
@@ -692,8 +692,9 @@ class _Session:
                 self._say(f"{stage} stopped early at its last epoch ({old_max}): train.{key} = {new_max} changes "
                           "nothing there")
                 continue
-            self._say(f"continuing {stage} after epoch {old_max} (train.{key} {old_max} -> {new_max}); the stages "
-                      "after it are trained again")
+            later = self.model.stages[index + 1:]
+            self._say(f"continuing {stage} after epoch {old_max} (train.{key} {old_max} -> {new_max})"
+                      + (f"; then {', '.join(later)} from the start" if later else ""))
             return end, True
         return state, False
 
