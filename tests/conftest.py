@@ -44,3 +44,23 @@ def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
 
     return ingest_synthetic_bimodal(tmp_path_factory.mktemp("syn") / "bimodal", samples=600, seed=3, quiet=True)
+
+
+@pytest.fixture
+def rome_pca_fails_twice(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ROME's first two PCA fits (in this process) raise, as a singular cluster covariance can make them, so
+    ROME takes its own fallback: it prints a line and re-runs the PCA with added jitter."""
+    import numpy as np
+    import rome.ROME as rome_module
+
+    real_pca = rome_module.PCA
+    failures = {"left": 2}
+
+    class FlakyPCA(real_pca):  # type: ignore[misc, valid-type]
+        def fit(self, *args, **kwargs):
+            if failures["left"] > 0:
+                failures["left"] -= 1
+                raise np.linalg.LinAlgError("SVD did not converge")
+            return super().fit(*args, **kwargs)
+
+    monkeypatch.setattr(rome_module, "PCA", FlakyPCA)

@@ -56,6 +56,17 @@ def test_eval_writes_predictions_ground_truth_and_every_metric(tiny_run: Path) -
     assert 0 <= values["jsd"] <= 1 and values["min_ade"] > 0
 
 
+@pytest.mark.usefixtures("rome_pca_fails_twice")
+def test_eval_records_rome_fallbacks_even_when_quiet(tiny_run: Path, tmp_path: Path) -> None:
+    """Experiment workers evaluate quietly; ROME's PCA fallback must still be on record, in eval.json."""
+    run = Path(shutil.copytree(tiny_run, tmp_path / "run"))
+    info = json.loads((evaluate(run, options=FAST, quiet=True) / "eval.json").read_text())
+    assert info["rome_fallback_fits"] == 1 and info["rome_fits"] >= 1
+    assert [w for w in info["warnings"] if "re-ran a failed PCA" in w] == [
+        f"1 of {info['rome_fits']} ROME fits re-ran a failed PCA with added jitter (2 retries; ROME's own fallback "
+        "for a singular cluster)"]
+
+
 def test_eval_is_deterministic_and_parallel_equals_serial(tiny_run: Path, tmp_path: Path) -> None:
     first = evaluate(tiny_run, options=FAST, quiet=True)
     before = pl.read_parquet(first / "metrics.parquet"), pl.read_parquet(first / "predictions.parquet")

@@ -7,8 +7,8 @@ import polars as pl
 import pytest
 
 from trajflow_pipeline.errors import UsageError
-from trajflow_pipeline.metrics import (METRIC_NAMES, RomeTask, compute_metrics, fit_and_score, min_ade,
-                                       nll_indep, run_rome_tasks)
+from trajflow_pipeline.metrics import (METRIC_NAMES, RomeFallbacks, RomeTask, compute_metrics, fit_and_score,
+                                       min_ade, nll_indep, run_rome_tasks)
 
 
 def _case(seed: int = 0, n_agents: int = 6, n_samples: int = 25, n_steps: int = 4):
@@ -79,28 +79,21 @@ def test_parallel_equals_serial() -> None:
         np.testing.assert_array_equal(results[index][0], fit_and_score(task, 3 + index)[0])
 
 
-def test_rome_pca_fallback_is_counted_not_printed(monkeypatch: pytest.MonkeyPatch,
-                                                  capsys: pytest.CaptureFixture) -> None:
+@pytest.mark.usefixtures("rome_pca_fails_twice")
+def test_rome_pca_fallback_is_counted_not_printed(capsys: pytest.CaptureFixture) -> None:
     """ROME prints a line whenever it re-runs a failed PCA with jitter; that line must not reach stdout (it would
-    break progress bars and tables): the fits go on, and one note on stderr says how many needed the fallback."""
+    break progress bars and tables): the fits go on, one note on stderr says how many needed the fallback, and a
+    tally given by the caller adds them up."""
     import rome.ROME as rome_module
 
-    real_pca = rome_module.PCA
-    failures = {"left": 2}
-
-    class FlakyPCA(real_pca):  # type: ignore[misc, valid-type]
-        def fit(self, *args, **kwargs):  # the first two PCA fits fail, as a singular covariance can make them
-            if failures["left"] > 0:
-                failures["left"] -= 1
-                raise np.linalg.LinAlgError("SVD did not converge")
-            return super().fit(*args, **kwargs)
-
-    monkeypatch.setattr(rome_module, "PCA", FlakyPCA)
     pred, gt, _, _ = _case(seed=2, n_samples=20)
     tasks = [RomeTask(fit=pred[a].reshape(20, -1), queries=(gt[a].reshape(1, -1),)) for a in range(3)]
-    results = run_rome_tasks(tasks, workers=1)
+    tally = RomeFallbacks(fits=4, fallback_fits=1, retries=1)  # from an earlier call
+    results = run_rome_tasks(tasks, workers=1, fallbacks=tally)
     captured = capsys.readouterr()
     assert "PCA failed" not in captured.out
     assert "1 of 3 ROME fits re-ran a failed PCA" in captured.err and "2 retries" in captured.err
+    assert tally == RomeFallbacks(fits=7, fallback_fits=2, retries=3)
+    assert tally.note().startswith("2 of 7 ROME fits re-ran a failed PCA") and RomeFallbacks().note() == ""
     assert all(np.isfinite(r[0]).all() for r in results)
     assert not hasattr(rome_module, "print")  # the module's own print is restored afterwards

@@ -15,7 +15,8 @@ in which order it ran: serial and parallel runs give bit-identical arrays.
 ROME prints "PCA failed, was done again with different random start." to stdout when a cluster's covariance is
 singular and it retries with added jitter (its own fallback; the fit goes on). Those lines would land in the
 middle of progress bars and tables, so they are counted instead, and :func:`run_rome_tasks` says once how many
-fits needed the fallback.
+fits needed the fallback (and adds them to a :class:`RomeFallbacks` tally when given one, which is how
+`trajflow eval` records them in eval.json even when quiet).
 
 Workers are never forked from the calling process: the eval stage has used torch's thread pools before the
 metrics run, and forking a process with live OpenMP threads can deadlock the child. They come from a
@@ -56,6 +57,23 @@ class RomeTask:
     queries: tuple[np.ndarray, ...]
     label: str = "ROME task"
     min_std: float = DEFAULT_MIN_STD
+
+
+@dataclass
+class RomeFallbacks:
+    """A running tally, over any number of :func:`run_rome_tasks` calls, of the ROME fits that re-ran a failed PCA
+    with added jitter (ROME's own fallback for a singular cluster; the fit goes on, slightly perturbed)."""
+
+    fits: int = 0
+    fallback_fits: int = 0
+    retries: int = 0
+
+    def note(self) -> str:
+        """One sentence for a log or a warnings list ('' when no fit fell back)."""
+        if not self.fallback_fits:
+            return ""
+        return (f"{self.fallback_fits} of {self.fits} ROME fits re-ran a failed PCA with added jitter "
+                f"({self.retries} retries; ROME's own fallback for a singular cluster)")
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -203,13 +221,14 @@ def _batches(n_tasks: int, workers: int) -> list[range]:
 
 
 def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, quiet: bool = False,
-                   description: str = "ROME density fits", base_seed: int = 0) -> list[tuple[np.ndarray, ...]]:
+                   description: str = "ROME density fits", base_seed: int = 0,
+                   fallbacks: RomeFallbacks | None = None) -> list[tuple[np.ndarray, ...]]:
     """Run independent ROME tasks and return, in task order, each task's tuple of log-density arrays.
 
     `workers` processes (default: all cores; 1 runs in this process, as does a single task) share the
     tasks; task `i` is seeded with `base_seed + i`, so the numbers are identical for any `workers`.
     A rich progress bar counts finished fits unless `quiet`, and a note says how many fits needed ROME's PCA
-    fallback (see the module docstring) when any did.
+    fallback (see the module docstring) when any did; `fallbacks`, when given, adds this call's counts to it.
     """
     n_workers = resolve_workers(workers)
     n_tasks = len(tasks)
@@ -241,7 +260,11 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     missing = [i for i, r in enumerate(results) if r is None]
     if missing:  # cannot happen unless the pool misbehaves; never hand back a silently short list
         raise RuntimeError(f"ROME tasks {missing[:10]} produced no result")
-    if retries.any() and not quiet:
-        console.print(f"[dim]note: {int((retries > 0).sum())} of {n_tasks} ROME fits re-ran a failed PCA with added "
-                      f"jitter ({int(retries.sum())} retries; ROME's own fallback for a singular cluster)[/]")
+    this_call = RomeFallbacks(fits=n_tasks, fallback_fits=int((retries > 0).sum()), retries=int(retries.sum()))
+    if fallbacks is not None:
+        fallbacks.fits += this_call.fits
+        fallbacks.fallback_fits += this_call.fallback_fits
+        fallbacks.retries += this_call.retries
+    if this_call.fallback_fits and not quiet:
+        console.print(f"[dim]note: {this_call.note()}[/]")
     return results  # type: ignore[return-value]

@@ -11,7 +11,9 @@ Writes, atomically, ``RUN/eval/``:
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
                               seconds, date, trajflow version, data fingerprint, the run's resolved config, the
                               digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
-                              whose final model has changed since), and ``horizon`` (below) with any ``warnings``.
+                              whose final model has changed since), ``horizon`` (below), ``rome_fits`` and
+                              ``rome_fallback_fits`` (ROME density fits made, and how many of them re-ran a failed
+                              PCA with added jitter), and any ``warnings`` (a truncated horizon; ROME's fallback).
 
 Horizons. The metrics compare the predictions with the ground truth over the dataset's ``n_future`` steps.
 ``--steps S`` below it evaluates only the first S steps: allowed (a shorter-horizon evaluation is a legitimate
@@ -52,7 +54,7 @@ import torch
 from .. import __version__
 from ..data import Problems, build_problems, select_samples
 from ..errors import TrajflowError, UsageError
-from ..metrics import METRIC_NAMES, check_metric_names, compute_metrics, jsd_groups
+from ..metrics import METRIC_NAMES, RomeFallbacks, check_metric_names, compute_metrics, jsd_groups
 from ..metrics.compute import SCHEMA, metric_rows
 from ..metrics.inputs import group_agents, group_minimum
 from ..model.models import CV_EXTENSION, TrajectoryModel
@@ -227,15 +229,17 @@ def ground_truth_table(problems: Problems) -> pl.DataFrame:
 
 
 def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, options: EvalOptions, *,
-                  quiet: bool, horizon: Horizon | None = None) -> pl.DataFrame:
+                  quiet: bool, horizon: Horizon | None = None,
+                  fallbacks: RomeFallbacks | None = None) -> pl.DataFrame:
     """The long metrics table of one run: the standard metrics over `horizon.evaluated` steps (default: the
     ground truth's n_future, or fewer when fewer were predicted) and, for an extended horizon, the same metrics
-    with suffix _ext over each problem's own ground-truth horizon."""
+    with suffix _ext over each problem's own ground-truth horizon. `fallbacks` tallies ROME's PCA fallbacks."""
     assert problems.batch.future is not None
     gt = problems.batch.future.double().numpy()
     steps = min(gt.shape[1], trajectories.shape[2]) if horizon is None else horizon.evaluated
     common = dict(joint_key=problems.joint_id, group_id=problems.group_id, k=options.k, metrics=options.metrics,
-                  workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled)
+                  workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled,
+                  fallbacks=fallbacks)
     table = compute_metrics(trajectories[:, :, :steps], gt[:, :steps], **common)
     if horizon is not None and horizon.extended:
         table = pl.concat([table, _extended_metrics(problems, trajectories, table, common)], how="vertical")
@@ -381,7 +385,10 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
     trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet,
                                              steps=horizon.predicted)
-    metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon)
+    fallbacks = RomeFallbacks()
+    metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon, fallbacks=fallbacks)
+    if fallbacks.fallback_fits:  # printed already unless quiet; recorded either way (quiet covers experiment workers)
+        warnings.append(fallbacks.note())
     info: dict[str, Any] = {
         "run": run.name, "run_dir": str(run.path.resolve()), "model": run.model, "dataset": problems.dataset,
         "fold": run.fold, "seed": run.seed, "samples": options.samples, "k": options.k,
@@ -392,6 +399,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "trajflow_version": __version__, "data_fingerprint": problems.fingerprint, "config": run.config,
         "model_digest": run.weights_digest,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
+        "rome_fits": fallbacks.fits, "rome_fallback_fits": fallbacks.fallback_fits,
         **_group_counts(problems, horizon.evaluated, options.metrics),
     }
     with atomic_directory(run.path / EVAL_DIR) as tmp:

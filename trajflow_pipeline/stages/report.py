@@ -117,11 +117,28 @@ def _consistency_notes(runs: list[Run]) -> list[str]:
             f"{identical} whose ground-truth futures are all the same"] * bool(identical)
         notes.append(f"JSD skipped {' and '.join(reasons)} (identical-input groups; evaluated on {evaluated} "
                      "group(s) with different futures), summed over runs.")
+    notes += _evaluation_warnings(runs)
     repeated = Counter((r.model, r.fold, r.seed) for r in runs)
     for (model, fold, seed), count in sorted(repeated.items(), key=str):
         if count > 1:
             notes.append(f"{model_label(model)} fold {fold or '—'} seed {seed} appears in {count} runs; each counts "
                          "in mean ± std.")
+    return notes
+
+
+def _evaluation_warnings(runs: list[Run]) -> list[str]:
+    """What the evaluations warned about (eval.json `warnings`, e.g. a truncated horizon), each once with the runs
+    it concerns, and ROME's PCA fallbacks summed over runs."""
+    fits = sum(int(r.info.get("rome_fits") or 0) for r in runs)
+    fallback_fits = sum(int(r.info.get("rome_fallback_fits") or 0) for r in runs)
+    notes = [f"{fallback_fits} of {fits} ROME density fits, summed over runs, re-ran a failed PCA with added jitter "
+             "(ROME's own fallback for a singular cluster)."] if fallback_fits else []
+    concerned: dict[str, list[str]] = {}
+    for run in runs:
+        for warning in run.info.get("warnings") or ():
+            if "re-ran a failed PCA" not in str(warning):  # summed above
+                concerned.setdefault(str(warning), []).append(run.name)
+    notes += [f"Evaluation warning ({', '.join(names)}): {warning}" for warning, names in concerned.items()]
     return notes
 
 
