@@ -206,7 +206,7 @@ def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stoppe
 
 def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) -> None:
     """By the weights' digest; for evaluations from before digests were recorded, by the dates."""
-    from trajflow_pipeline.stages.experiment import _finished
+    from trajflow_pipeline.stages.experiment import run_evaluated
 
     run = tmp_path / "run"
     (run / "eval").mkdir(parents=True)
@@ -216,7 +216,7 @@ def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) ->
         (run / "run.json").write_text(json.dumps({"status": status, "finished": "2026-11-30T10:00:00+00:00",
                                                   "rank_weight_digests": [digest] if digest else None}))
         (run / "eval" / "eval.json").write_text(json.dumps({"model_digest": evaluated, "date": date}))
-        return _finished(run)
+        return run_evaluated(run)
 
     later, earlier = "2026-11-30T10:05:00.5+00:00", "2026-11-30T09:55:00.5+00:00"
     assert state("finished", "a", "a", earlier)          # the digest decides when both are known

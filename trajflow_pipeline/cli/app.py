@@ -17,6 +17,7 @@ from .forking_cmd import augment_forking_command, augment_scale_rotate_command, 
 from .nuscenes_cmd import ingest_nuscenes_command
 from .report_cmd import report_command
 from .round_cmd import ingest_round_command
+from .status_cmd import status_command
 from .train_cmd import train_command
 
 app = typer.Typer(
@@ -270,6 +271,7 @@ def demo_command(
 
 app.command("train")(train_command)
 app.command("report")(report_command)
+app.command("status")(status_command)
 ingest_app.command("forking-paths")(ingest_forking_paths_command)
 ingest_app.command("round")(ingest_round_command)
 ingest_app.command("nuscenes")(ingest_nuscenes_command)

@@ -236,7 +236,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     plan = _plan(config, data)
     if changed:  # every run must be able to follow the raised budgets before anything changes
         blockers = [b for model, fold, seed in plan
-                    if (b := raise_blocker(out / "runs" / run_name(model, fold, seed), _overrides(config, model)))]
+                    if (b := raise_blocker(out / "runs" / run_name(model, fold, seed),
+                                           run_overrides(config, model)))]
         if blockers:
             raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
                              + ". Use a new -o for the larger budget")
@@ -247,7 +248,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     else:
         _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs)
     _write_index(out, config, data, plan)
-    elsewhere = [run_name(*key) for key in plan if not _done(out / "runs" / run_name(*key), _overrides(config, key[0]))]
+    elsewhere = [run_name(*key) for key in plan
+                 if not run_done(out / "runs" / run_name(*key), run_overrides(config, key[0]))]
     if elsewhere and not quiet:
         console.print(f"[yellow]{len(elsewhere)} run(s) are still in progress in another process[/] "
                       f"({', '.join(elsewhere)}); the index includes them once they finish")
@@ -284,14 +286,14 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
                       + "): runs their old budget stopped continue from their last epoch and are evaluated again")
 
 
-def _overrides(config: ExperimentConfig, model: str) -> list[str]:
+def run_overrides(config: ExperimentConfig, model: str) -> list[str]:
     """The `--set` overrides the experiment gives `model`'s runs."""
     return [*config.train_overrides, *config.model_overrides.get(model, ())]
 
 
 def _run_config(config: ExperimentConfig, model: str) -> RunConfig:
     """The training config the experiment gives `model`'s runs (the seed aside)."""
-    return load_config(overrides=[*_overrides(config, model), f"model.name={model}"])
+    return load_config(overrides=[*run_overrides(config, model), f"model.name={model}"])
 
 
 def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, int]]:
@@ -300,7 +302,7 @@ def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, i
     return [(m, f, s) for m in config.models for f in folds for s in config.seeds]
 
 
-def _finished(run_dir: Path) -> bool:
+def run_evaluated(run_dir: Path) -> bool:
     """Trained, and evaluated on its current final model (a run whose budget was raised is neither until its new
     model is trained and evaluated)."""
     if not (run_dir / EVAL_DIR / "metrics.parquet").exists():
@@ -331,9 +333,9 @@ def _final_model(run_dir: Path) -> tuple[Any, Any] | None:
     return info.get("finished"), weights_digest(info)
 
 
-def _done(run_dir: Path, overrides: list[str]) -> bool:
-    """Finished (see `_finished`) with the config the experiment now gives it (its budgets were not raised)."""
-    if not _finished(run_dir):
+def run_done(run_dir: Path, overrides: list[str]) -> bool:
+    """Finished (see `run_evaluated`) with the config the experiment now gives it (its budgets were not raised)."""
+    if not run_evaluated(run_dir):
         return False
     saved_path = run_dir / CONFIG_FILE
     if not saved_path.is_file():
@@ -352,8 +354,8 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         run_dir = out / "runs" / name
-        overrides = _overrides(config, model)
-        if _done(run_dir, overrides):
+        overrides = run_overrides(config, model)
+        if run_done(run_dir, overrides):
             if not worker:  # N workers would say it N times
                 note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
             continue
@@ -362,7 +364,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
                 if not worker:  # sibling workers taking runs is expected; another command doing so is news
                     note(f"[dim]{index}/{len(plan)} {name}: in progress in another process, left to it[/]")
                 continue
-            if _done(run_dir, overrides):  # finished by another process between the check and the claim
+            if run_done(run_dir, overrides):  # finished by another process between the check and the claim
                 continue
             note(f"[bold]{index}/{len(plan)} {name}[/]")
             inner_quiet = quiet or bool(worker)
@@ -371,7 +373,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
             model_before = _final_model(run_dir)
             train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
                   device=device, resume=run_dir.exists(), quiet=inner_quiet)
-            if not _finished(run_dir) or _final_model(run_dir) != model_before:
+            if not run_evaluated(run_dir) or _final_model(run_dir) != model_before:
                 evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
                          quiet=inner_quiet)
         note(f"[green]{index}/{len(plan)} {name}: done[/]")
@@ -435,7 +437,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
     now gives them); one process at a time, so that both files always describe the same runs."""
     runs = [f"runs/{run_name(*key)}" for key in plan]
     with claim(out / ".index.lock", wait=True):
-        finished = [r for r, key in zip(runs, plan) if _done(out / r, _overrides(config, key[0]))]
+        finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0]))]
         if finished:
             metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
                                 how="vertical_relaxed")

@@ -1,0 +1,146 @@
+"""`trajflow status EXP` on experiment directories laid out as `trajflow experiment` leaves them."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import polars as pl
+import pytest
+from typer.testing import CliRunner
+
+from trajflow_pipeline.cli.app import app
+from trajflow_pipeline.errors import DataError, UsageError
+from trajflow_pipeline.model.config import load_config
+from trajflow_pipeline.stages.status import StageProgress, experiment_status
+from trajflow_pipeline.util.claim import claim
+
+BUDGET = ["train.ae_max_epochs=30", "train.ae_min_epochs=5", "train.ae_patience=4", "train.flow_max_epochs=8",
+          "train.flow_min_epochs=2", "train.flow_patience=3"]
+
+
+def write_experiment(out: Path, budget: list[str] = BUDGET) -> Path:
+    """An experiment directory's config: TrajFlow and cv on folds eth and hotel, one seed (no dataset needed)."""
+    out.mkdir(parents=True)
+    (out / "config.toml").write_text(f'''name = "status_test"
+[data]
+path = "{(out / 'no-data').as_posix()}"
+[protocol]
+models = ["trajflow", "cv"]
+folds = ["eth", "hotel"]
+seeds = [0]
+[train]
+set = {json.dumps(budget)}
+''')
+    return out
+
+
+def write_run(out: Path, name: str, *, status: str, log: list[tuple[str, int, float | None]],
+              model: str = "trajflow", budget: list[str] = BUDGET, evaluated: bool = False) -> Path:
+    """A run directory: run.json, its config, a training log of (stage, epoch, val_loss) and, when `evaluated`, an
+    evaluation of its final weights."""
+    run = out / "runs" / name
+    run.mkdir(parents=True)
+    (run / "config.toml").write_text(load_config(overrides=[*budget, f"model.name={model}"]).to_toml())
+    info = {"model": model, "status": status, "rank_weight_digests": ["w1"] if status == "finished" else None,
+            "finished": "2026-11-30T10:00:00+00:00" if status == "finished" else None}
+    (run / "run.json").write_text(json.dumps(info))
+    pl.DataFrame({"stage": [s for s, _, _ in log], "epoch": [e for _, e, _ in log],
+                  "val_loss": [v for _, _, v in log], "seconds": [2.0] * len(log)},
+                 schema={"stage": pl.String, "epoch": pl.Int64, "val_loss": pl.Float64, "seconds": pl.Float64},
+                 ).write_parquet(run / "train_log.parquet")
+    if evaluated:
+        (run / "eval").mkdir()
+        pl.DataFrame({"metric": ["min_ade", "min_fde", "min_ade"], "value": [0.25, 0.5, 9.0],
+                      "aggregate": [True, True, False]}).write_parquet(run / "eval" / "metrics.parquet")
+        (run / "eval" / "eval.json").write_text(json.dumps({"model_digest": "w1", "seconds": 30.0,
+                                                            "date": "2026-11-30T10:01:00+00:00"}))
+    return run
+
+
+def autoencoder_then_flow(flow_losses: list[float]) -> list[tuple[str, int, float | None]]:
+    """Ten autoencoder epochs (best at 7), then flow epochs with the given validation losses."""
+    ae = [("autoencoder", e, 1.0 / e if e <= 7 else 0.5) for e in range(1, 11)]
+    return ae + [("flow", e, v) for e, v in enumerate(flow_losses, start=1)]
+
+
+def test_each_state_with_its_progress_and_the_time_its_stage_may_take(tmp_path: Path) -> None:
+    out = write_experiment(tmp_path / "exp")
+    write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1, -2, -3, -2, -2, -2]),
+              evaluated=True)
+    write_run(out, "trajflow-hotel-s0", status="training", log=autoencoder_then_flow([-1.0, -3.0, -2.0]))
+    write_run(out, "cv-eth-s0", status="finished", model="cv", log=[("fit", 1, None)])
+    status = experiment_status(out)
+    assert [r.name for r in status.runs] == ["trajflow-eth-s0", "trajflow-hotel-s0", "cv-eth-s0", "cv-hotel-s0"]
+    done, interrupted, trained, planned = status.runs
+    assert (done.state, done.metrics, done.eval_seconds, done.train_seconds) == (
+        "done", {"min_ade": 0.25, "min_fde": 0.5}, 30.0, 32.0)
+    assert done.progress == StageProgress(stage="flow", epoch=6, min_epochs=2, max_epochs=8, best_epoch=3,
+                                          patience=3, seconds_per_epoch=2.0)
+    if sys.platform == "linux":
+        assert interrupted.state == "interrupted" and interrupted.busy is False
+    # flow epoch 3 of at most 8; best at 2 with patience 3: early stopping can end it after epoch 5
+    assert interrupted.progress is not None and interrupted.progress.epochs_left == (2, 5)
+    assert (trained.state, planned.state, planned.progress, planned.train_seconds) == ("trained", "planned", None, 0)
+    assert status.to_dict()["runs"][1]["progress"]["epochs_left"] == (2, 5)
+
+
+def test_the_minimum_epochs_bound_the_earliest_stop() -> None:
+    early = StageProgress(stage="autoencoder", epoch=3, min_epochs=100, max_epochs=5000, best_epoch=1, patience=10)
+    assert early.epochs_left == (97, 4997)
+    stopping = StageProgress(stage="flow", epoch=20, min_epochs=10, max_epochs=500, best_epoch=10, patience=10)
+    assert stopping.epochs_left == (0, 480)
+    no_patience = StageProgress(stage="flow", epoch=20, min_epochs=10, max_epochs=25, best_epoch=10, patience=0)
+    assert no_patience.epochs_left == (5, 5)
+    assert StageProgress(stage="fit", epoch=1).epochs_left is None
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="claims are read from /proc/locks, which only Linux has")
+def test_a_claimed_run_is_training_and_asking_never_takes_its_claim(tmp_path: Path) -> None:
+    out = write_experiment(tmp_path / "exp")
+    write_run(out, "trajflow-eth-s0", status="training", log=autoencoder_then_flow([]))
+    with claim(out / "runs" / ".trajflow-eth-s0.lock") as mine, claim(out / "runs" / ".cv-hotel-s0.lock"):
+        assert mine
+        runs = experiment_status(out).runs
+        assert (runs[0].state, runs[0].busy) == ("training", True)
+        assert (runs[3].state, runs[3].busy) == ("training", True)   # claimed, before its run.json exists
+        assert runs[1].busy is False
+        with claim(out / "runs" / ".trajflow-eth-s0.lock") as again:  # held by us still: status did not touch it
+            assert not again
+
+
+def test_a_raised_budget_shows_until_the_run_follows_it(tmp_path: Path) -> None:
+    raised = [b.replace("flow_max_epochs=8", "flow_max_epochs=12") for b in BUDGET]
+    out = write_experiment(tmp_path / "exp", budget=raised)
+    write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0] * 8), evaluated=True)
+    assert experiment_status(out).runs[0].state == "budget raised"
+
+
+def test_cli_table_json_and_errors(tmp_path: Path) -> None:
+    out = write_experiment(tmp_path / "exp")
+    write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1, -2]), evaluated=True)
+    runner = CliRunner()
+    result = runner.invoke(app, ["status", str(out)], env={"COLUMNS": "160"})
+    assert result.exit_code == 0, result.output
+    assert "trajflow-eth-s0" in result.output and "0.250/0.500" in result.output and "flow: 2/8" in result.output
+    assert "4 runs: 3 planned, 1 done" in result.output
+    as_json = json.loads(runner.invoke(app, ["status", str(out), "--json"]).stdout)
+    assert [r["state"] for r in as_json["runs"]] == ["done", "planned", "planned", "planned"]
+    missing = runner.invoke(app, ["status", str(tmp_path / "nothing")])
+    assert missing.exit_code != 0 and "not an experiment directory" in missing.output
+    with pytest.raises(UsageError, match="not an experiment directory"):
+        experiment_status(tmp_path)
+    (out / "runs" / "trajflow-eth-s0" / "run.json").write_text("{broken")
+    with pytest.raises(DataError, match=r"run\.json.*unreadable"):
+        experiment_status(out)
+
+
+def test_folds_come_from_the_run_directories_when_the_dataset_is_not_here(tmp_path: Path) -> None:
+    out = write_experiment(tmp_path / "exp")
+    text = (out / "config.toml").read_text().replace('folds = ["eth", "hotel"]\n', 'folds = "all"\n')
+    (out / "config.toml").write_text(text)
+    write_run(out, "trajflow-zara1-s0", status="training", log=autoencoder_then_flow([]))
+    status = experiment_status(out)
+    assert [r.name for r in status.runs] == ["trajflow-zara1-s0", "cv-zara1-s0"]
+    assert status.note is not None and "was not found from here" in status.note

@@ -1,0 +1,91 @@
+"""`trajflow status`: parse arguments, call :func:`trajflow_pipeline.stages.status.experiment_status`, print a table.
+
+Registered in `cli/app.py` as ``app.command("status")(status_command)``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from ..stages.status import ExperimentStatus, RunStatus, StageProgress
+from .common import user_errors
+
+#: how each state is shown
+_STATE_STYLE = {"done": "green", "training": "bold cyan", "evaluating": "bold cyan", "continuing": "bold cyan",
+                "interrupted": "yellow", "training or interrupted": "yellow", "trained": "yellow",
+                "budget raised": "yellow", "planned": "dim"}
+
+
+def status_command(
+    experiment: Annotated[Path, typer.Argument(help="An experiment directory (`trajflow experiment ... -o EXP`).")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the status as JSON on stdout.")] = False,
+) -> None:
+    """Where each run of an experiment stands: state, stage and epoch against its budget, early-stopping patience,
+    time per epoch and the time the stage can still take, training time so far, minADE/minFDE when done."""
+    from ..stages.status import experiment_status
+
+    with user_errors():
+        status = experiment_status(experiment)
+    if as_json:
+        typer.echo(json.dumps(status.to_dict(), indent=2, default=str))
+        return
+    print_status(status, Console())
+
+
+def print_status(status: ExperimentStatus, out: Console) -> None:
+    """The status as a rich table and a summary line."""
+    table = Table(title=f"experiment {status.name}  ({status.path})")
+    table.add_column("run", no_wrap=True)
+    table.add_column("state")
+    for column in ("stage: epoch", "best (patience)", "s/epoch", "stage left", "trained", "minADE/FDE"):
+        table.add_column(column, justify="right")
+    for run in status.runs:
+        metrics = [run.metrics.get("min_ade"), run.metrics.get("min_fde")]
+        table.add_row(run.name, f"[{_STATE_STYLE.get(run.state, '')}]{run.state}[/]", *_progress_cells(run),
+                      _duration(run.train_seconds) if run.train_seconds else "",
+                      "/".join(f"{v:.3f}" for v in metrics if v is not None))
+    out.print(table)
+    states = Counter(run.state for run in status.runs)
+    trained = sum(run.train_seconds for run in status.runs)
+    evaluated = sum(run.eval_seconds or 0.0 for run in status.runs)
+    summary = ", ".join(f"{count} {state}" for state, count in states.most_common())
+    out.print(f"{len(status.runs)} runs: {summary}. Time so far, summed over runs: training {_duration(trained)}, "
+              f"evaluation {_duration(evaluated)}.", highlight=False)
+    if status.note:
+        out.print(f"[yellow]note:[/] {status.note}", highlight=False)
+
+
+def _progress_cells(run: RunStatus) -> list[str]:
+    """stage and epoch of its maximum, best epoch (and the patience left while training), seconds per epoch,
+    and the time the stage may still take."""
+    progress: StageProgress | None = run.progress
+    if progress is None:
+        return [""] * 4
+    epoch = f"{progress.stage}: {progress.epoch}" + (f"/{progress.max_epochs}" if progress.max_epochs else "")
+    best = "" if progress.best_epoch is None else str(progress.best_epoch)
+    active = run.state not in ("done", "trained", "budget raised")
+    if active and progress.patience and progress.best_epoch is not None:
+        best += f" ({max(0, progress.patience - (progress.epoch - progress.best_epoch))}/{progress.patience})"
+    left = progress.epochs_left
+    remaining = ""
+    if active and left is not None and progress.seconds_per_epoch is not None:
+        fewest, most = (n * progress.seconds_per_epoch for n in left)
+        remaining = _duration(most) if fewest == most else f"{_duration(fewest)}-{_duration(most)}"
+    return [epoch, best, "" if progress.seconds_per_epoch is None else f"{progress.seconds_per_epoch:.1f}",
+            remaining]
+
+
+def _duration(seconds: float) -> str:
+    """A readable duration: seconds, minutes or hours."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
