@@ -123,6 +123,8 @@ def test_extended_eval_scores_each_sample_over_its_own_horizon(runs: dict[str, P
     assert horizon["predicted"] == horizon["extended_max"] == 35 and horizon["extended_min"] == 25
     assert horizon["extended_samples"] == 2 and horizon["beyond_trained"] == "autoregressive"
     assert not horizon["extended_by_constant_velocity"] and not horizon["truncated"] and info["warnings"] == []
+    # the _ext pass refits only the long samples and their joint partners, and is counted apart
+    assert 0 < info["rome_fits_ext"] <= info["rome_fits"] and info["rome_fallback_fits_ext"] == 0
     assert predictions.get_column("step").max() == 35
     own = dict(truth.group_by("sample_id").agg(pl.col("step").max()).iter_rows())
     assert sorted(own.values()) == [25, 25, 35, 35]                    # ground truth only up to each horizon

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -11,9 +12,9 @@ import pytest
 from typer.testing import CliRunner
 
 from trajflow_pipeline.cli.app import app
-from trajflow_pipeline.errors import DataError, UsageError
+from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.model.config import load_config
-from trajflow_pipeline.stages.status import StageProgress, experiment_status
+from trajflow_pipeline.stages.status import StageProgress, experiment_status, parse_lock_table
 from trajflow_pipeline.util.claim import claim
 
 BUDGET = ["train.ae_max_epochs=30", "train.ae_min_epochs=5", "train.ae_patience=4", "train.flow_max_epochs=8",
@@ -86,14 +87,92 @@ def test_each_state_with_its_progress_and_the_time_its_stage_may_take(tmp_path: 
     assert status.to_dict()["runs"][1]["progress"]["epochs_left"] == (2, 5)
 
 
-def test_the_minimum_epochs_bound_the_earliest_stop() -> None:
+def test_the_epoch_range_follows_train_early_stopping() -> None:
+    """train.py: a stage ends at its maximum, or once it is past its minimum and `patience` epochs have brought no
+    lower validation loss than the best (counted from epoch 0 while no loss was finite)."""
     early = StageProgress(stage="autoencoder", epoch=3, min_epochs=100, max_epochs=5000, best_epoch=1, patience=10)
-    assert early.epochs_left == (97, 4997)
-    stopping = StageProgress(stage="flow", epoch=20, min_epochs=10, max_epochs=500, best_epoch=10, patience=10)
-    assert stopping.epochs_left == (0, 480)
+    assert (early.epochs_left, early.patience_left, early.stopped) == ((97, 4997), 8, False)
+    stopped = StageProgress(stage="flow", epoch=20, min_epochs=10, max_epochs=500, best_epoch=10, patience=10)
+    assert (stopped.stopped, stopped.epochs_left, stopped.patience_left) == (True, (0, 0), 0)
+    at_max = StageProgress(stage="flow", epoch=25, min_epochs=10, max_epochs=25, best_epoch=25, patience=10)
+    assert at_max.stopped and at_max.epochs_left == (0, 0)
     no_patience = StageProgress(stage="flow", epoch=20, min_epochs=10, max_epochs=25, best_epoch=10, patience=0)
-    assert no_patience.epochs_left == (5, 5)
-    assert StageProgress(stage="fit", epoch=1).epochs_left is None
+    assert no_patience.epochs_left == (5, 5) and no_patience.patience_left is None
+    never_finite = StageProgress(stage="flow", epoch=2, min_epochs=2, max_epochs=8, best_epoch=None, patience=3)
+    assert never_finite.epochs_left == (1, 6)
+    assert StageProgress(stage="flow", epoch=3, min_epochs=2, max_epochs=8, patience=3).stopped
+    closed_form = StageProgress(stage="fit", epoch=1)
+    assert closed_form.epochs_left is None and closed_form.stopped
+
+
+def test_an_unfinished_run_whose_stage_ended_shows_the_next_stage(tmp_path: Path) -> None:
+    out = write_experiment(tmp_path / "exp")
+    # autoencoder best at 7, patience 4, min 5: it stopped after epoch 11; the flow had not logged an epoch
+    write_run(out, "trajflow-eth-s0", status="training",
+              log=[("autoencoder", e, 1.0 / e if e <= 7 else 0.5) for e in range(1, 12)])
+    progress = experiment_status(out).runs[0].progress
+    assert progress == StageProgress(stage="flow", epoch=0, min_epochs=2, max_epochs=8, patience=3)
+    assert progress.epochs_left == (3, 8)  # patience 3 counted from epoch 0
+
+
+def test_the_budget_is_the_one_the_experiment_now_sets(tmp_path: Path) -> None:
+    """Per-model overrides and raised budgets count for runs that will train again; a live run keeps its own."""
+    out = write_experiment(tmp_path / "exp")
+    (out / "config.toml").write_text((out / "config.toml").read_text()
+                                     + '[models.trajflow]\nset = ["train.flow_max_epochs=40"]\n')
+    write_run(out, "trajflow-eth-s0", status="training", log=autoencoder_then_flow([-1.0, -2.0, -3.0]))
+    write_run(out, "trajflow-hotel-s0", status="training", log=autoencoder_then_flow([-1.0, -2.0, -3.0]))
+    with claim(out / "runs" / ".trajflow-hotel-s0.lock"):
+        interrupted, live = experiment_status(out).runs[:2]
+    assert interrupted.progress is not None and interrupted.progress.max_epochs == 40
+    if sys.platform == "linux":
+        assert live.state == "training" and live.progress is not None and live.progress.max_epochs == 8
+
+
+def test_lock_table_lines_held_and_waiting() -> None:
+    table = ("1: FLOCK  ADVISORY  WRITE 28836 fe:00:5309521 0 EOF\n"
+             "1: -> FLOCK  ADVISORY  WRITE 28900 fe:00:5309521 0 EOF\n"
+             "2: POSIX  ADVISORY  READ 1234 00:2f:77 0 EOF\n"
+             "3: OFDLCK ADVISORY  WRITE -1 08:01:4242 0 EOF\n"
+             "4: FLOCK  ADVISORY  WRITE 99 <none>:0 0 EOF\n"
+             "5: -> POSIX ADVISORY WRITE 5 08:01:99 0 EOF\n")
+    assert parse_lock_table(table) == {5309521, 77, 4242}
+
+
+def test_on_a_network_file_system_an_unclaimed_run_may_be_another_machines(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    import trajflow_pipeline.stages.status as status_module
+
+    out = write_experiment(tmp_path / "exp")
+    write_run(out, "trajflow-eth-s0", status="training", log=autoencoder_then_flow([-1.0]))
+    monkeypatch.setattr(status_module, "_file_system_type", lambda path: "nfs4")
+    monkeypatch.setattr(status_module, "_locked_inodes", lambda: set())
+    runs = experiment_status(out).runs
+    assert (runs[0].state, runs[0].busy) == ("training or interrupted", None)
+    assert (runs[1].state, runs[1].busy) == ("planned", None)
+
+
+def test_evaluating_runs_show_no_patience_and_unreadable_runs_do_not_hide_the_others(tmp_path: Path) -> None:
+    out = write_experiment(tmp_path / "exp")
+    write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0, -2.0, -2.0, -2.0, -2.0]))
+    write_run(out, "trajflow-hotel-s0", status="training", log=autoencoder_then_flow([-1.0]))
+    (out / "runs" / "trajflow-hotel-s0" / "run.json").write_text("[1, 2]")
+    with claim(out / "runs" / ".trajflow-eth-s0.lock"):
+        status = experiment_status(out)
+        output = _cli_output(out)
+    evaluating, unreadable = status.runs[:2]
+    if sys.platform == "linux":
+        assert evaluating.state == "evaluating"
+        row = next(line for line in output.splitlines() if "trajflow-eth-s0" in line)
+        assert "flow: 5/8" in row and "(0/3)" not in row and " s-" not in row
+    assert unreadable.state == "unreadable" and "expected a JSON object" in (unreadable.problem or "")
+    assert "trajflow-hotel-s0:" in output and "run.json" in output
+
+
+def _cli_output(out: Path) -> str:
+    result = CliRunner().invoke(app, ["status", str(out)], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    return result.output
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="claims are read from /proc/locks, which only Linux has")
@@ -132,8 +211,8 @@ def test_cli_table_json_and_errors(tmp_path: Path) -> None:
     with pytest.raises(UsageError, match="not an experiment directory"):
         experiment_status(tmp_path)
     (out / "runs" / "trajflow-eth-s0" / "run.json").write_text("{broken")
-    with pytest.raises(DataError, match=r"run\.json.*unreadable"):
-        experiment_status(out)
+    broken = experiment_status(out).runs[0]
+    assert broken.state == "unreadable" and re.search(r"run\.json.*unreadable", broken.problem or "")
 
 
 def test_folds_come_from_the_run_directories_when_the_dataset_is_not_here(tmp_path: Path) -> None:

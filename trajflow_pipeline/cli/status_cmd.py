@@ -12,6 +12,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from ..stages.status import ExperimentStatus, RunStatus, StageProgress
@@ -20,7 +21,7 @@ from .common import user_errors
 #: how each state is shown
 _STATE_STYLE = {"done": "green", "training": "bold cyan", "evaluating": "bold cyan", "continuing": "bold cyan",
                 "interrupted": "yellow", "training or interrupted": "yellow", "trained": "yellow",
-                "budget raised": "yellow", "planned": "dim"}
+                "budget raised": "yellow", "planned": "dim", "unreadable": "bold red"}
 
 
 def status_command(
@@ -58,27 +59,33 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
     summary = ", ".join(f"{count} {state}" for state, count in states.most_common())
     out.print(f"{len(status.runs)} runs: {summary}. Time so far, summed over runs: training {_duration(trained)}, "
               f"evaluation {_duration(evaluated)}.", highlight=False)
+    for run in status.runs:
+        if run.problem:
+            out.print(f"[red]{run.name}:[/] {escape(run.problem)}", highlight=False)
     if status.note:
         out.print(f"[yellow]note:[/] {status.note}", highlight=False)
 
 
 def _progress_cells(run: RunStatus) -> list[str]:
     """stage and epoch of its maximum, best epoch (and the patience left while training), seconds per epoch,
-    and the time the stage may still take."""
+    and the time the stage may still take (while its training goes on)."""
     progress: StageProgress | None = run.progress
     if progress is None:
         return [""] * 4
     epoch = f"{progress.stage}: {progress.epoch}" + (f"/{progress.max_epochs}" if progress.max_epochs else "")
-    best = "" if progress.best_epoch is None else str(progress.best_epoch)
-    active = run.state not in ("done", "trained", "budget raised")
-    if active and progress.patience and progress.best_epoch is not None:
-        best += f" ({max(0, progress.patience - (progress.epoch - progress.best_epoch))}/{progress.patience})"
+    training = run.state in ("training", "interrupted", "training or interrupted", "budget raised", "continuing")
+    best = progress.kept_epoch if not training and progress.kept_epoch is not None else progress.best_epoch
+    best_text = "" if best is None else str(best)
+    if training and progress.patience_left is not None:
+        best_text += f" ({progress.patience_left}/{progress.patience})"
     left = progress.epochs_left
     remaining = ""
-    if active and left is not None and progress.seconds_per_epoch is not None:
+    if training and left is not None and progress.seconds_per_epoch is not None:
         fewest, most = (n * progress.seconds_per_epoch for n in left)
         remaining = _duration(most) if fewest == most else f"{_duration(fewest)}-{_duration(most)}"
-    return [epoch, best, "" if progress.seconds_per_epoch is None else f"{progress.seconds_per_epoch:.1f}",
+    elif training and left is not None and left != (0, 0):
+        remaining = f"{left[0]}-{left[1]} epochs" if left[0] != left[1] else f"{left[1]} epochs"
+    return [epoch, best_text, "" if progress.seconds_per_epoch is None else f"{progress.seconds_per_epoch:.1f}",
             remaining]
 
 

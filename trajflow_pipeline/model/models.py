@@ -83,6 +83,11 @@ class TrajectoryModel(nn.Module, abc.ABC):
         self.config = config
         self.spec = spec
 
+    @classmethod
+    def stages_for(cls, config: ModelConfig) -> tuple[str, ...]:
+        """The training stages, in order, of this family's model built with `config` (known without building it)."""
+        return cls.stages
+
     def normalize(self, batch: SceneBatch) -> Normalized:
         """Target frames, local past and (if present) scaled future displacements of `batch`."""
         frame = target_frame(batch.past)
@@ -165,8 +170,15 @@ class FlowModel(TrajectoryModel):
                                           hidden=tuple(config.flow_hidden), seed=seed,
                                           standardize=config.flow_standardize)
         if config.flow_standardize:
-            self.stages = (*self.stages[:-1], self.STANDARDIZE, self.stages[-1])
+            self.stages = self.stages_for(config)
             self.closed_form_stages = (*self.closed_form_stages, self.STANDARDIZE)
+
+    @classmethod
+    def stages_for(cls, config: ModelConfig) -> tuple[str, ...]:
+        """The family's stages, with the closed-form "standardize" fit before the flow when the config asks for it."""
+        if not config.flow_standardize:
+            return cls.stages
+        return (*cls.stages[:-1], cls.STANDARDIZE, cls.stages[-1])
 
     def fit_stage(self, stage: str, batch: SceneBatch) -> None:
         if stage != self.STANDARDIZE or not self.config.flow_standardize:

@@ -12,8 +12,9 @@ Writes, atomically, ``RUN/eval/``:
                               seconds, date, trajflow version, data fingerprint, the run's resolved config, the
                               digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
                               whose final model has changed since), ``horizon`` (below), ``rome_fits`` and
-                              ``rome_fallback_fits`` (ROME density fits made, and how many of them re-ran a failed
-                              PCA with added jitter), and any ``warnings`` (a truncated horizon; ROME's fallback).
+                              ``rome_fallback_fits`` (ROME density fits made for the standard metrics, and how many
+                              re-ran a failed PCA with added jitter; ``*_ext`` the same for the extended-horizon
+                              metrics), and any ``warnings`` (a truncated horizon).
 
 Horizons. The metrics compare the predictions with the ground truth over the dataset's ``n_future`` steps.
 ``--steps S`` below it evaluates only the first S steps: allowed (a shorter-horizon evaluation is a legitimate
@@ -229,11 +230,12 @@ def ground_truth_table(problems: Problems) -> pl.DataFrame:
 
 
 def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, options: EvalOptions, *,
-                  quiet: bool, horizon: Horizon | None = None,
-                  fallbacks: RomeFallbacks | None = None) -> pl.DataFrame:
+                  quiet: bool, horizon: Horizon | None = None, fallbacks: RomeFallbacks | None = None,
+                  fallbacks_ext: RomeFallbacks | None = None) -> pl.DataFrame:
     """The long metrics table of one run: the standard metrics over `horizon.evaluated` steps (default: the
     ground truth's n_future, or fewer when fewer were predicted) and, for an extended horizon, the same metrics
-    with suffix _ext over each problem's own ground-truth horizon. `fallbacks` tallies ROME's PCA fallbacks."""
+    with suffix _ext over each problem's own ground-truth horizon. `fallbacks` and `fallbacks_ext` tally the ROME
+    fits that needed ROME's PCA fallback for the standard and the _ext metrics."""
     assert problems.batch.future is not None
     gt = problems.batch.future.double().numpy()
     steps = min(gt.shape[1], trajectories.shape[2]) if horizon is None else horizon.evaluated
@@ -242,7 +244,8 @@ def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, op
                   fallbacks=fallbacks)
     table = compute_metrics(trajectories[:, :, :steps], gt[:, :steps], **common)
     if horizon is not None and horizon.extended:
-        table = pl.concat([table, _extended_metrics(problems, trajectories, table, common)], how="vertical")
+        extended = _extended_metrics(problems, trajectories, table, dict(common, fallbacks=fallbacks_ext))
+        table = pl.concat([table, extended], how="vertical")
     sample_ids = pl.Series(problems.sample_id.astype(np.int64))
     return table.with_columns(
         sample_id=pl.col("agent_index").map_batches(
@@ -385,10 +388,10 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
     trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet,
                                              steps=horizon.predicted)
-    fallbacks = RomeFallbacks()
-    metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon, fallbacks=fallbacks)
-    if fallbacks.fallback_fits:  # printed already unless quiet; recorded either way (quiet covers experiment workers)
-        warnings.append(fallbacks.note())
+    # ROME's PCA fallbacks are printed unless quiet, and recorded either way (experiment workers are quiet).
+    fallbacks, fallbacks_ext = RomeFallbacks(), RomeFallbacks()
+    metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon, fallbacks=fallbacks,
+                            fallbacks_ext=fallbacks_ext)
     info: dict[str, Any] = {
         "run": run.name, "run_dir": str(run.path.resolve()), "model": run.model, "dataset": problems.dataset,
         "fold": run.fold, "seed": run.seed, "samples": options.samples, "k": options.k,
@@ -400,6 +403,8 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "model_digest": run.weights_digest,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
         "rome_fits": fallbacks.fits, "rome_fallback_fits": fallbacks.fallback_fits,
+        **({"rome_fits_ext": fallbacks_ext.fits, "rome_fallback_fits_ext": fallbacks_ext.fallback_fits}
+           if horizon.extended else {}),
         **_group_counts(problems, horizon.evaluated, options.metrics),
     }
     with atomic_directory(run.path / EVAL_DIR) as tmp:

@@ -128,16 +128,22 @@ def _consistency_notes(runs: list[Run]) -> list[str]:
 
 def _evaluation_warnings(runs: list[Run]) -> list[str]:
     """What the evaluations warned about (eval.json `warnings`, e.g. a truncated horizon), each once with the runs
-    it concerns, and ROME's PCA fallbacks summed over runs."""
-    fits = sum(int(r.info.get("rome_fits") or 0) for r in runs)
-    fallback_fits = sum(int(r.info.get("rome_fallback_fits") or 0) for r in runs)
-    notes = [f"{fallback_fits} of {fits} ROME density fits, summed over runs, re-ran a failed PCA with added jitter "
-             "(ROME's own fallback for a singular cluster)."] if fallback_fits else []
+    it concerns, and ROME's PCA fallbacks (eval.json `rome_*`) summed over runs."""
+    notes = []
+    for suffix, what in (("", "the metrics"), ("_ext", "the extended-horizon (_ext) metrics")):
+        recorded = [r for r in runs if isinstance(r.info.get(f"rome_fits{suffix}"), int)]
+        fallback_fits = sum(int(r.info.get(f"rome_fallback_fits{suffix}") or 0) for r in recorded)
+        if fallback_fits:
+            fits = sum(int(r.info[f"rome_fits{suffix}"]) for r in recorded)
+            unrecorded = len(runs) - len(recorded) if suffix == "" else 0
+            notes.append(f"{fallback_fits} of {fits} ROME density fits for {what}, summed over runs, re-ran a failed "
+                         "PCA with added jitter (ROME's own fallback for a singular cluster)"
+                         + (f"; {_plural(unrecorded, 'run')} evaluated before such fits were counted"
+                            if unrecorded else "") + ".")
     concerned: dict[str, list[str]] = {}
     for run in runs:
         for warning in run.info.get("warnings") or ():
-            if "re-ran a failed PCA" not in str(warning):  # summed above
-                concerned.setdefault(str(warning), []).append(run.name)
+            concerned.setdefault(str(warning), []).append(run.name)
     notes += [f"Evaluation warning ({', '.join(names)}): {warning}" for warning, names in concerned.items()]
     return notes
 

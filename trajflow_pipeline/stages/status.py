@@ -2,17 +2,22 @@
 
 It reads only what training and evaluation leave behind (``run.json``, ``config.toml``, ``train_log.parquet``,
 ``eval/eval.json``) and the operating system's table of file locks (``/proc/locks``) to see which runs a live
-process has claimed. It never takes a claim itself, so asking cannot make a worker skip a run; where the lock table
-cannot be read (not Linux) a run that is not finished shows as "training or interrupted".
+process has claimed. It never takes a claim itself, so asking cannot make a worker skip a run. Where the lock table
+cannot be read (not Linux), or the experiment lies on a network file system (where a process on another machine
+may hold a claim that this machine's table does not list), a run that is not finished and not claimed here shows as
+"training or interrupted". A run whose files cannot be read shows as "unreadable" with the reason.
 
-For the stage being trained it gives the epoch, the stage's budget (min / max epochs), the best epoch so far and
-how many epochs the early-stopping patience has left, the recent seconds per epoch, and the range of time the stage
-can still take: at least until the minimum epochs and the patience are used up, at most until its maximum.
+For the stage being trained it gives the epoch, the stage's budget (min / max epochs, as the experiment's config now
+sets them: a raised budget shows before the run follows it), the best epoch so far and the early-stopping patience
+left, the recent seconds per epoch, and the range of time the stage can still take: at least until the minimum
+epochs and the patience are used up, at most until its maximum. When an unfinished run's last logged stage has
+ended, the stage after it is shown, at epoch 0.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -22,7 +27,8 @@ import polars as pl
 
 from ..data import list_folds
 from ..errors import DataError, UsageError
-from ..model.config import load_config
+from ..model.config import RunConfig, load_config
+from ..model.models import MODEL_CLASSES
 from .evaluate import EVAL_DIR
 from .experiment import ExperimentConfig, load_experiment, run_done, run_evaluated, run_name, run_overrides
 from .train import CONFIG_FILE, LOG_FILE, RUN_FILE
@@ -35,27 +41,50 @@ _RECENT_EPOCHS = 5
 
 @dataclass(frozen=True)
 class StageProgress:
-    """The last stage a run trained (or is training) and how far along it is."""
+    """The stage a run is training (or trained last) and how far along it is, judged as train.py's early stopping
+    judges it: after `min_epochs`, `patience` epochs without a lower validation loss than the best end the stage."""
 
     stage: str
+    #: epochs this stage has trained (0: it is the next to start)
     epoch: int
     min_epochs: int | None = None
     max_epochs: int | None = None
+    #: the epoch of the lowest finite validation loss so far (None: none yet; early stopping then counts from 0)
     best_epoch: int | None = None
     patience: int | None = None
     seconds_per_epoch: float | None = None
+    #: the epoch whose weights a finished run kept (run.json; differs from best_epoch under val_nll selection)
+    kept_epoch: int | None = None
+
+    @property
+    def stopped(self) -> bool:
+        """Whether training has ended this stage: its maximum reached, or early stopping (closed-form stages end
+        after their one pass)."""
+        if self.max_epochs is None or self.min_epochs is None:
+            return self.epoch >= 1
+        return self.epoch >= self.max_epochs or bool(
+            self.patience and self.epoch >= self.min_epochs and self.epoch - (self.best_epoch or 0) >= self.patience)
+
+    @property
+    def patience_left(self) -> int | None:
+        """Epochs without a better validation loss that early stopping still allows (None: no patience)."""
+        if not self.patience or self.max_epochs is None:
+            return None
+        return max(0, self.patience - (self.epoch - (self.best_epoch or 0)))
 
     @property
     def epochs_left(self) -> tuple[int, int] | None:
         """(fewest, most) epochs the stage may still train: early stopping can end it once the minimum epochs are
-        done and the patience is used up; the maximum ends it in any case."""
+        done and the patience is used up; the maximum ends it in any case. None for closed-form stages."""
         if self.max_epochs is None or self.min_epochs is None:
             return None
-        most = max(0, self.max_epochs - self.epoch)
-        if not self.patience or self.best_epoch is None:
+        if self.stopped:
+            return 0, 0
+        most = self.max_epochs - self.epoch
+        if not self.patience:
             return most, most
-        stop_at = max(self.min_epochs, self.best_epoch + self.patience)
-        return min(most, max(0, stop_at - self.epoch)), most
+        stop_at = max(self.min_epochs, (self.best_epoch or 0) + self.patience)
+        return min(most, stop_at - self.epoch), most
 
 
 @dataclass(frozen=True)
@@ -66,14 +95,17 @@ class RunStatus:
     model: str
     fold: str | None
     seed: int
-    #: planned, training, interrupted, evaluating, trained, budget raised, continuing, done
+    #: planned, training, interrupted, training or interrupted, evaluating, trained, continuing, budget raised,
+    #: done, or unreadable (see `problem`)
     state: str
-    #: claimed by a live process now (None: this platform's lock table cannot be read)
+    #: claimed by a live process now (None: cannot tell from here, see the module docstring)
     busy: bool | None
     progress: StageProgress | None
     train_seconds: float
     eval_seconds: float | None
     metrics: dict[str, float]
+    #: why the run's files could not be read (state "unreadable")
+    problem: str | None = None
 
 
 @dataclass(frozen=True)
@@ -86,12 +118,14 @@ class ExperimentStatus:
     note: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready: the runs with their stage's remaining epoch range."""
+        """JSON-ready (non-finite metric values as null), with each stage's remaining epoch range."""
         runs = []
         for run in self.runs:
             entry = asdict(run)
+            entry["metrics"] = {k: (v if math.isfinite(v) else None) for k, v in run.metrics.items()}
             if run.progress is not None:
-                entry["progress"]["epochs_left"] = run.progress.epochs_left
+                entry["progress"] |= {"epochs_left": run.progress.epochs_left,
+                                      "patience_left": run.progress.patience_left}
             runs.append(entry)
         return {"name": self.name, "path": str(self.path), "note": self.note, "runs": runs}
 
@@ -104,16 +138,16 @@ def experiment_status(out: str | Path) -> ExperimentStatus:
                          "makes one)")
     config = load_experiment(out / "config.toml")
     plan, note = _planned(out, config)
-    locked = _locked_inodes()
-    runs = [_run_status(out, config, model, fold, seed, locked) for model, fold, seed in plan]
+    claims = _Claims(out / "runs")
+    runs = [_run_status(out, config, model, fold, seed, claims) for model, fold, seed in plan]
     return ExperimentStatus(name=config.name, path=out, runs=runs, note=note)
 
 
 def _planned(out: Path, config: ExperimentConfig) -> tuple[list[tuple[str, str | None, int]], str | None]:
     """(model, fold, seed) of every run in plan order, and a note when the folds had to be guessed.
 
-    The folds come from the dataset (as the experiment found them), else from the index the experiment writes
-    (experiment.json), else from the run directories that exist."""
+    The folds come from the config, else from the dataset (as the experiment found them), else from the index the
+    experiment writes (experiment.json), else from the run directories that exist."""
     folds: list[str | None] | None = None
     note = None
     if config.folds not in (None, "all"):
@@ -130,13 +164,19 @@ def _planned(out: Path, config: ExperimentConfig) -> tuple[list[tuple[str, str |
     return [(m, f, s) for m in config.models for f in folds for s in config.seeds], note
 
 
+def _index(out: Path) -> dict[str, Any]:
+    """The experiment's index (experiment.json) as far as it is readable; {} before the first run is done."""
+    try:
+        index = json.loads((out / "experiment.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return index if isinstance(index, dict) else {}
+
+
 def _data_dir(out: Path, config: ExperimentConfig) -> Path | None:
     """The experiment's dataset: where its index says it was, else the config's path (relative to here)."""
-    try:
-        indexed = json.loads((out / "experiment.json").read_text()).get("data")
-    except (OSError, ValueError):
-        indexed = None
-    for candidate in (indexed, config.data_path):
+    indexed = _index(out).get("data")
+    for candidate in (indexed if isinstance(indexed, str) else None, config.data_path):
         if candidate and (Path(candidate) / "dataset.json").is_file():
             return Path(candidate)
     return None
@@ -144,102 +184,160 @@ def _data_dir(out: Path, config: ExperimentConfig) -> Path | None:
 
 def _index_runs(out: Path) -> list[str]:
     """The run names the experiment's index plans (empty when it has no index yet)."""
-    try:
-        planned = json.loads((out / "experiment.json").read_text()).get("planned") or []
-    except (OSError, ValueError):
-        return []
-    return [Path(entry).name for entry in planned]
+    planned = _index(out).get("planned")
+    return [Path(entry).name for entry in planned if isinstance(entry, str)] if isinstance(planned, list) else []
 
 
 def _folds_from_names(names: list[str], config: ExperimentConfig) -> list[str | None]:
     """The folds in run names `<model>-<fold>-s<seed>` of the config's models and seeds, in first-seen order."""
     folds: list[str | None] = []
+    affixes = [(f"{m}-", f"-s{s}") for m in sorted(config.models, key=len, reverse=True) for s in config.seeds]
     for name in names:
-        for model in sorted(config.models, key=len, reverse=True):
-            for seed in config.seeds:
-                prefix, suffix = f"{model}-", f"-s{seed}"
-                if name.startswith(prefix) and name.endswith(suffix) and len(name) > len(prefix) + len(suffix):
-                    fold = name[len(prefix):-len(suffix)]
-                    fold_value = None if fold == "all" else fold
-                    if fold_value not in folds:
-                        folds.append(fold_value)
-                    break
-            else:
-                continue
-            break
+        for prefix, suffix in affixes:
+            if name.startswith(prefix) and name.endswith(suffix) and len(name) > len(prefix) + len(suffix):
+                fold = name[len(prefix):-len(suffix)]
+                if (None if fold == "all" else fold) not in folds:
+                    folds.append(None if fold == "all" else fold)
+                break
     return folds or [None]
 
 
-def _locked_inodes() -> set[tuple[int, int, int]] | None:
-    """(major, minor, inode) of every file a process holds a lock on, from /proc/locks; None where unreadable."""
+#: file systems on which another machine may hold a run's claim, which this machine's lock table does not show
+_NETWORK_FILE_SYSTEMS = frozenset({
+    "nfs", "nfs4", "cifs", "smb3", "smbfs", "lustre", "gpfs", "ceph", "fuse.cephfs", "beegfs", "glusterfs",
+    "fuse.glusterfs", "ocfs2", "gfs2", "9p", "afs", "fuse.sshfs", "panfs", "wekafs"})
+
+
+class _Claims:
+    """Which runs of one experiment a live process has claimed, read from the OS lock table (see the module doc)."""
+
+    def __init__(self, runs_dir: Path) -> None:
+        self.locked = _locked_inodes()
+        self.shared = _file_system_type(runs_dir) in _NETWORK_FILE_SYSTEMS
+
+    def held(self, lock_path: Path) -> bool | None:
+        """True when a process of this machine holds the claim; False when none does, anywhere; None when this
+        cannot be known (no lock table, or a network file system where another machine may hold it)."""
+        if self.locked is None:
+            return None
+        try:
+            inode = lock_path.stat().st_ino
+        except FileNotFoundError:
+            return None if self.shared else False
+        # By inode alone: the lock table's device numbers are the superblock's, which stat() does not always
+        # report (btrfs subvolumes, overlay mounts).
+        if inode in self.locked:
+            return True
+        return None if self.shared else False
+
+
+def parse_lock_table(text: str) -> set[int]:
+    """Inodes of the files that a lock is held on, from the text of /proc/locks (waiting requests, marked '->',
+    hold nothing)."""
+    inodes = set()
+    for line in text.splitlines():
+        fields = line.split()
+        if len(fields) < 6 or "->" in fields[:2]:
+            continue
+        parts = fields[5].split(":")
+        if len(parts) == 3 and parts[2].isdigit():
+            inodes.add(int(parts[2]))
+    return inodes
+
+
+def _locked_inodes() -> set[int] | None:
+    """Inodes with a lock held on this machine; None where /proc/locks cannot be read (not Linux)."""
     try:
-        lines = Path("/proc/locks").read_text().splitlines()
+        return parse_lock_table(Path("/proc/locks").read_text())
     except OSError:
         return None
-    locked = set()
-    for line in lines:
-        fields = line.split()
-        if "->" in fields:  # a process waiting for a lock, not holding one
-            continue
-        for field in fields:
-            parts = field.split(":")
-            if len(parts) == 3:
-                try:
-                    locked.add((int(parts[0], 16), int(parts[1], 16), int(parts[2])))
-                except ValueError:
-                    pass
-                break
-    return locked
 
 
-def _claimed(lock_path: Path, locked: set[tuple[int, int, int]] | None) -> bool | None:
-    """Whether a live process holds the claim on `lock_path` (None: cannot tell)."""
-    if locked is None:
-        return None
+def _file_system_type(path: Path) -> str | None:
+    """The type of the file system holding `path` (the longest matching mount point of /proc/self/mounts)."""
     try:
-        stat = lock_path.stat()
-    except FileNotFoundError:
-        return False
-    return (os.major(stat.st_dev), os.minor(stat.st_dev), stat.st_ino) in locked
+        mounts = Path("/proc/self/mounts").read_text().splitlines()
+    except OSError:
+        return None
+    target = str(path.resolve())
+    best, kind = -1, None
+    for line in mounts:
+        fields = line.split()
+        if len(fields) < 3:
+            continue
+        mount = fields[1].replace("\\040", " ")
+        inside = target == mount or target.startswith(mount.rstrip("/") + "/")
+        if inside and len(mount) > best:
+            best, kind = len(mount), fields[2]
+    return kind
 
 
 def _run_status(out: Path, config: ExperimentConfig, model: str, fold: str | None, seed: int,
-                locked: set[tuple[int, int, int]] | None) -> RunStatus:
+                claims: _Claims) -> RunStatus:
+    """One run's status; a run whose files cannot be read is shown as "unreadable" with the reason, not an error
+    that hides every other run."""
     name = run_name(model, fold, seed)
-    run_dir = out / "runs" / name
-    busy = _claimed(out / "runs" / f".{name}.lock", locked)
+    busy = claims.held(out / "runs" / f".{name}.lock")
+    try:
+        return _inspect_run(out / "runs" / name, config, model, fold, seed, busy)
+    except (DataError, UsageError) as error:
+        return RunStatus(name=name, model=model, fold=fold, seed=seed, state="unreadable", busy=busy, progress=None,
+                         train_seconds=0.0, eval_seconds=None, metrics={}, problem=str(error))
+
+
+#: states of a run whose training has not finished
+_UNFINISHED = ("training", "interrupted", "training or interrupted")
+
+
+def _inspect_run(run_dir: Path, config: ExperimentConfig, model: str, fold: str | None, seed: int,
+                 busy: bool | None) -> RunStatus:
     info = _read_json(run_dir / RUN_FILE)
-    evaluation = _read_json(run_dir / EVAL_DIR / "eval.json")
-    log = _read_log(run_dir / LOG_FILE)
+    overrides = run_overrides(config, model)
     if info is None:
         state = "training" if busy else "planned"
     elif info.get("status") != "finished":
         state = "training" if busy else ("training or interrupted" if busy is None else "interrupted")
     elif not run_evaluated(run_dir):
         state = "evaluating" if busy else "trained"
-    elif not run_done(run_dir, run_overrides(config, model)):
+    elif not run_done(run_dir, overrides):
         state = "continuing" if busy else "budget raised"
     else:
         state = "done"
+    log = _read_log(run_dir / LOG_FILE)
+    progress = None
+    if log is not None and log.height:
+        saved = run_dir / CONFIG_FILE
+        # The budget the run follows: a live training keeps the one it started with (its config.toml); otherwise
+        # the experiment's config decides what comes next, a raised budget included.
+        if busy and state == "training" and saved.is_file():
+            budget = load_config(saved)
+        else:
+            budget = load_config(overrides=[*overrides, f"model.name={model}"],
+                                 base=load_config(saved) if saved.is_file() else None)
+        progress = _progress(log, budget, info if state not in _UNFINISHED else None)
+        if state in _UNFINISHED and progress.stopped:
+            progress = _next_stage(progress, budget, model)
+    evaluation = _read_json(run_dir / EVAL_DIR / "eval.json") if state == "done" else None
+    eval_seconds = evaluation.get("seconds") if evaluation else None
     return RunStatus(
-        name=name, model=model, fold=fold, seed=seed, state=state, busy=busy,
-        progress=_progress(log, run_dir) if log is not None and log.height else None,
+        name=run_dir.name, model=model, fold=fold, seed=seed, state=state, busy=busy, progress=progress,
         train_seconds=float(log.get_column("seconds").sum()) if log is not None and log.height else 0.0,
-        eval_seconds=(float(evaluation["seconds"]) if state == "done" and evaluation
-                      and isinstance(evaluation.get("seconds"), (int, float)) else None),
+        eval_seconds=float(eval_seconds) if isinstance(eval_seconds, (int, float)) else None,
         metrics=_aggregates(run_dir) if state == "done" else {},
     )
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
-    """A JSON file's object, None when it is missing; a corrupt one is a DataError naming it."""
+    """A JSON object file, None when it is missing; anything else is a DataError naming it."""
     try:
         value = json.loads(path.read_text())
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as error:
         raise DataError(f"unreadable ({error})", path) from None
-    return value if isinstance(value, dict) else None
+    if not isinstance(value, dict):
+        raise DataError(f"expected a JSON object, found {type(value).__name__}", path)
+    return value
 
 
 def _read_log(path: Path) -> pl.DataFrame | None:
@@ -252,25 +350,37 @@ def _read_log(path: Path) -> pl.DataFrame | None:
         raise DataError(f"unreadable training log ({error})", path) from None
 
 
-def _progress(log: pl.DataFrame, run_dir: Path) -> StageProgress:
-    """The last stage in the log: its epochs since it (last) started, its best epoch and its budget."""
+def _budget(stage: str, config: RunConfig) -> dict[str, int]:
+    """min_epochs, max_epochs and patience of a gradient stage ({} for a closed-form one)."""
+    prefix = _BUDGET_PREFIX.get(stage)
+    if prefix is None:
+        return {}
+    return {key: int(getattr(config.train, f"{prefix}_{key}")) for key in ("min_epochs", "max_epochs", "patience")}
+
+
+def _progress(log: pl.DataFrame, config: RunConfig, info: dict[str, Any] | None) -> StageProgress:
+    """The last stage in the log: its epochs since it (last) started, its best epoch under `config`'s budget, and,
+    from a finished run's `info` (run.json), the epoch it kept."""
     stages = log.get_column("stage")
     stage = str(stages[-1])
-    changes = (stages != stages.shift(1)).fill_null(True).arg_true()
-    current = log.slice(int(changes[-1]))
-    epoch = int(current.get_column("epoch")[-1])
+    current = log.slice(int((stages != stages.shift(1)).fill_null(True).arg_true()[-1]))
     recent = current.tail(_RECENT_EPOCHS).get_column("seconds").median()
-    seconds_per_epoch = float(recent) if isinstance(recent, (int, float)) else None
-    prefix = _BUDGET_PREFIX.get(stage)
-    if prefix is None or not (run_dir / CONFIG_FILE).is_file():
-        return StageProgress(stage=stage, epoch=epoch, seconds_per_epoch=seconds_per_epoch)
-    train = load_config(run_dir / CONFIG_FILE).train
-    validated = current.filter(pl.col("val_loss").is_not_null() & pl.col("val_loss").is_finite())
-    best = (int(validated.sort("val_loss", maintain_order=True).get_column("epoch")[0])
-            if validated.height else None)
-    return StageProgress(stage=stage, epoch=epoch, min_epochs=getattr(train, f"{prefix}_min_epochs"),
-                         max_epochs=getattr(train, f"{prefix}_max_epochs"), best_epoch=best,
-                         patience=getattr(train, f"{prefix}_patience"), seconds_per_epoch=seconds_per_epoch)
+    finite = current.filter(pl.col("val_loss").is_not_null() & pl.col("val_loss").is_finite())
+    best = int(finite.sort("val_loss", maintain_order=True).get_column("epoch")[0]) if finite.height else None
+    kept = ((info or {}).get("best") or {}).get(stage) if isinstance((info or {}).get("best"), dict) else None
+    return StageProgress(stage=stage, epoch=int(current.get_column("epoch")[-1]), best_epoch=best,
+                         seconds_per_epoch=float(recent) if isinstance(recent, (int, float)) else None,
+                         kept_epoch=int(kept["epoch"]) if isinstance(kept, dict) and "epoch" in kept else None,
+                         **_budget(stage, config))
+
+
+def _next_stage(done: StageProgress, config: RunConfig, model: str) -> StageProgress:
+    """The stage an unfinished run trains after `done` ended (`done` itself when it was the last)."""
+    stages = MODEL_CLASSES[model].stages_for(config.model) if model in MODEL_CLASSES else ()
+    if done.stage not in stages or stages.index(done.stage) + 1 >= len(stages):
+        return done
+    following = stages[stages.index(done.stage) + 1]
+    return StageProgress(stage=following, epoch=0, **_budget(following, config))
 
 
 def _aggregates(run_dir: Path) -> dict[str, float]:
@@ -280,4 +390,5 @@ def _aggregates(run_dir: Path) -> dict[str, float]:
         table = pl.read_parquet(path, columns=["metric", "value", "aggregate"]).filter(pl.col("aggregate"))
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable metrics ({error})", path) from None
-    return {str(metric): float(value) for metric, value in table.select("metric", "value").iter_rows()}
+    return {str(metric): float(value) for metric, value in table.select("metric", "value").iter_rows()
+            if value is not None}
