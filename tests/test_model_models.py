@@ -218,6 +218,31 @@ def test_gnn_dense_and_sparse_message_passing_match_the_documented_rounds() -> N
             assert torch.allclose(grad, expected, rtol=1e-4, atol=1e-3)
 
 
+def test_gnn_groups_problems_by_size_without_changing_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rounds on size-ordered groups of problems, each cut to its own extent, give each problem what one pass over
+    the whole padded batch gives, in the batch's order, gradients included; nodes need not be compacted."""
+    torch.manual_seed(0)
+    gnn = SocialGNN()
+    batch, n = 21, 9
+    mask = torch.rand(batch, n) < torch.linspace(0.05, 0.9, batch)[:, None]   # from nearly empty to crowded
+    mask[:, 0] = True                                                            # the target
+    mask[3, 1:] = False                                                          # alone
+    mask[5, 1:8], mask[5, 8] = False, True                                       # a hole before its last node
+    past = 3 * torch.randn(batch, n, 8, 2)
+    valid = torch.ones(batch, n, 8, dtype=torch.bool) & mask[..., None]
+    types = torch.randint(0, 5, (batch, n))
+    results = []
+    for group_size in (batch, 4):
+        monkeypatch.setattr(SocialGNN, "GROUP_SIZE", group_size)
+        leaf = past.clone().requires_grad_(True)
+        gnn.zero_grad()
+        out = gnn(leaf, valid, mask, types)
+        (out ** 2).sum().backward()
+        results.append((out.detach(), leaf.grad, gnn.msg_edge.weight.grad.clone(), gnn.embed.weight.grad.clone()))
+    for grouped, whole in zip(results[1], results[0]):
+        assert torch.allclose(grouped, whole, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])
 def test_flow_standardize_adds_a_closed_form_stage(name: str) -> None:
     batch = crowd_batch(40, neighbours=3)
