@@ -18,6 +18,7 @@ from trajflow_pipeline.stages.experiment import load_experiment, run_experiment
 from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.util.provenance import code_revision
 
 TINY = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", "train.flow_max_epochs=2", "train.flow_min_epochs=1",
         "model.flow_layers=2", "model.flow_hidden=[16, 16]"]
@@ -41,6 +42,8 @@ def test_eval_writes_predictions_ground_truth_and_every_metric(tiny_run: Path) -
     assert info["model"] == "trajflow" and info["dataset"] == "synthetic_bimodal" and info["problems"] == 120
     assert info["log_lik_label"] == "latent" and info["samples"] == 12 and info["k"] == 5
     assert info["jsd_groups"] == 1 and info["jsd_groups_skipped"] == 0 and info["jsd_groups_identical_futures"] == 0
+    assert info["code_revision"] == code_revision()
+    assert info["training_code_revisions"] == json.loads((tiny_run / "run.json").read_text())["code_revisions"]
     predictions = pl.read_parquet(out / "predictions.parquet")
     assert predictions.columns == ["sample_id", "draw", "step", "x", "y", "log_lik"]
     assert predictions.height == 120 * 12 * 14

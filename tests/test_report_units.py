@@ -113,3 +113,11 @@ def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
         "JSD vs Constant velocity: BETTER — our TrajFlow 0.300, Constant velocity 1.000.",
     ]
     assert comparisons(summary_stats(metrics.filter(pl.col("model") == "flomo"))) == []
+
+
+def test_provenance_names_the_code_that_trained_and_evaluated_a_run() -> None:
+    from trajflow_pipeline.stages.report import _code_text
+
+    assert _code_text({"trajflow_version": "0.1.0"}) == "0.1.0"
+    assert _code_text({"trajflow_version": "0.1.0", "code_revision": "bbb", "training_code_revisions": [
+        "unrecorded", "aaa"]}) == "0.1.0 (unrecorded, aaa, eval bbb)"

@@ -26,6 +26,7 @@ from train_fakes import FakeProblems
 from trajflow_pipeline.stages import train as train_stage
 from trajflow_pipeline.stages.runs import open_run
 from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.util import provenance
 
 FAST = ["train.ae_min_epochs=0", "train.flow_min_epochs=0"]
 TINY_MODEL = ["model.flow_layers=4", "model.flow_hidden=[16, 16]", "model.gnn_layers=2"]
@@ -127,6 +128,7 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
                                                              "train.flow_max_epochs=3", "train.ae_batch_size=32",
                                                              "train.flow_batch_size=32"])
     whole = train(tmp_path / "data", tmp_path / "whole", **options)
+    assert json.loads((whole / "run.json").read_text())["code_revisions"] == [provenance.code_revision() or "unknown"]
 
     class Killed(Exception):
         pass
@@ -137,6 +139,9 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
                 raise Killed(stop_at)
 
         monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+        # newer code continues the run after the first interruption: run.json keeps both revisions
+        monkeypatch.setattr(provenance, "code_revision", lambda first=stop_at[0] == "autoencoder": (
+            "rev-a" if first else "rev-b"))
         with pytest.raises(Killed):
             train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
         assert not (tmp_path / "parts" / "final").exists()
@@ -150,6 +155,14 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
     assert log_of(whole).select(curve).equals(log_of(tmp_path / "parts").select(curve))
     # A finished run resumes to itself.
     assert train(tmp_path / "data", tmp_path / "parts", resume=True, **options) == tmp_path / "parts"
+    assert json.loads((tmp_path / "parts" / "run.json").read_text())["code_revisions"] == ["rev-a", "rev-b"]
+
+
+def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(provenance, "code_revision", lambda: "rev-b")
+    assert provenance.revisions_after(None) == ["unrecorded", "rev-b"]
+    assert provenance.revisions_after(["rev-a", "rev-b"]) == ["rev-a", "rev-b"]
+    assert provenance.revisions_after([]) == ["rev-b"]
 
 
 def test_resume_restores_flomo_randomness(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -301,12 +301,13 @@ def _provenance(runs: list[Run]) -> list[Block]:
     header = ("run", "model", "dataset", "fold", "seed", "draws", "K", "evaluated", "trajflow", "data", "path")
     rows = tuple(tuple(Cell(str(v)) for v in (
         run.name, run.model, run.dataset, run.fold or "—", run.seed, run.draws or "—", run.k or "—",
-        run.info.get("date", "—"), run.info.get("trajflow_version", "—"),
+        run.info.get("date", "—"), _code_text(run.info),
         _fingerprint_text(run.info.get("data_fingerprint")), run.path)) for run in runs)
     blocks: list[Block] = [
         Heading(2, "Provenance", anchor="provenance"),
         Paragraph("What produced every number: each run's eval.json (model, data fingerprint, seed, trajflow "
-                  "version, date) and its resolved training config."),
+                  "version with the code revisions that trained and evaluated it where recorded, date) and its "
+                  "resolved training config."),
         Table(header=header, rows=rows, numeric=(False,) * 4 + (True,) * 3 + (False,) * 4),
     ]
     for run in runs:
@@ -315,6 +316,15 @@ def _provenance(runs: list[Run]) -> list[Block]:
         blocks.append(Code(json.dumps(details, indent=2, default=str), "json",
                            f"Config and data fingerprint of {run.name} ({model_label(run.model)}, {run.label})"))
     return blocks
+
+
+def _code_text(info: dict[str, Any]) -> str:
+    """trajflow version, and the code revisions that trained (-> evaluated) the run where they were recorded."""
+    text = str(info.get("trajflow_version", "—"))
+    trained = info.get("training_code_revisions")
+    revisions = [*(trained if isinstance(trained, list) else []),
+                 *([f"eval {info['code_revision']}"] if info.get("code_revision") else [])]
+    return f"{text} ({', '.join(map(str, revisions))})" if revisions else text
 
 
 def _json_safe(value: Any) -> Any:

@@ -30,6 +30,8 @@ class RunInfo:
     config: dict[str, Any] = field(default_factory=dict)
     #: digest of the final weights (run.json; None for runs trained before trajflow recorded it)
     weights_digest: str | None = None
+    #: the code revisions that trained it, oldest first (run.json; None before trajflow recorded them)
+    code_revisions: tuple[str, ...] | None = None
 
     @property
     def name(self) -> str:
@@ -71,6 +73,8 @@ def open_run(run_dir: str | Path) -> RunInfo:
         return RunInfo(path=path, model=str(info["model"]), dataset=str(info["dataset"]), fold=info.get("fold"),
                        seed=int(info["seed"]), data_path=Path(info["data_dir"]),
                        fingerprint=dict(info.get("fingerprint", {})), config=config,
-                       weights_digest=weights_digest(info))
+                       weights_digest=weights_digest(info),
+                       code_revisions=(tuple(map(str, info["code_revisions"]))
+                                       if isinstance(info.get("code_revisions"), list) else None))
     except (KeyError, TypeError, ValueError) as error:
         raise TrajflowError(f"{info_path}: incomplete run description ({error})") from None

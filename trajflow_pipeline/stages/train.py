@@ -66,6 +66,7 @@ from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import console, make_progress
+from ..util.provenance import revisions_after
 
 CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
@@ -388,6 +389,8 @@ class _Session:
     best: dict[str, dict[str, float]] = field(default_factory=dict)
     skipped_total: int = 0
     started: str = field(default_factory=lambda: dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
+    #: the code revisions that trained this run, oldest first (see util.provenance)
+    code_revisions: list[str] = field(default_factory=lambda: revisions_after([]))
 
     @property
     def writer(self) -> bool:
@@ -636,6 +639,7 @@ class _Session:
             "best": self.best,
             "skipped_total": self.skipped_total,
             "started": self.started,
+            "code_revisions": self.code_revisions,
         })
 
     def _follow_budget(self, state: dict[str, Any]) -> tuple[dict[str, Any] | None, bool, bool]:
@@ -709,6 +713,7 @@ class _Session:
         self.best = dict(state["best"])
         self.skipped_total = int(state["skipped_total"])
         self.started = str(state["started"])
+        self.code_revisions = revisions_after(state.get("code_revisions"))
         progress = _progress_from(state)
         if self.writer and not self.quiet:
             console.print(f"[dim]resuming {self.run_dir}: stage {int(state['stage_index']) + 1}, "
@@ -745,7 +750,7 @@ class _Session:
             "n_train": len(self.data.train), "n_val": len(self.data.val), "validation": self.data.validation,
             "log_lik_space": self.model.log_lik_space, "world_size": self.dist.world, "device": str(self.device),
             "cpu_threads": torch.get_num_threads(), "best": self.best, "skipped_steps": self.skipped_total,
-            "started": self.started,
+            "started": self.started, "code_revisions": self.code_revisions,
             "final": f"{FINAL_DIR}/model.safetensors" if status == "finished" else None,
         }
         if status == "finished":
