@@ -63,16 +63,17 @@ class SocialGNN(nn.Module):
                                     for _ in range(layers))
         self.out_features = width
 
-    #: problems per size group (see `forward`): small enough that a group's padding wastes little, large enough
-    #: that the per-group overhead stays small
+    #: problems per size group on a CPU (see `forward`): small enough that a group's padding wastes little and its
+    #: edge tensors stay near the cache, large enough that the per-group overhead stays small. Other devices take
+    #: the batch in one group (many small kernel launches would cost more there; not measured yet)
     GROUP_SIZE = 8
 
     def forward(self, nodes_past: Tensor, nodes_valid: Tensor, nodes_mask: Tensor, nodes_type: Tensor) -> Tensor:
         """Node pasts (B, n, P, 2) in the target frame, step validity (B, n, P), node mask (B, n), classes (B, n).
 
         Returns the graph encoding (B, width). Only real nodes' pasts are encoded. The problems are ordered by how
-        far their real nodes extend and the rounds run on groups of `GROUP_SIZE` problems in that order, each
-        cut to its own extent: a batch mixing crowded and empty scenes then costs about sum(n_i^2) edges, not
+        far their real nodes extend and, on a CPU, the rounds run on groups of `GROUP_SIZE` problems in that order,
+        each cut to its own extent: a batch mixing crowded and empty scenes then costs about sum(n_i^2) edges, not
         B * max(n_i)^2. Within a group, messages are computed on the padded (g, n, n) layout when padding wastes
         little (contiguous, fast), else only for the edges between real nodes. All give the same result.
         """
@@ -88,8 +89,9 @@ class SocialGNN(nn.Module):
         order = torch.argsort(extent, stable=True)
         ends, counts = torch.stack((extent[order], nodes_mask.sum(1)[order])).tolist()  # one transfer to the host
         readouts = []
-        for start in range(0, batch, self.GROUP_SIZE):
-            stop = min(start + self.GROUP_SIZE, batch)
+        size = self.GROUP_SIZE if x.device.type == "cpu" else batch
+        for start in range(0, batch, size):
+            stop = min(start + size, batch)
             group, k = order[start:stop], max(1, ends[stop - 1])
             dense = (stop - start) * k * k <= 2 * sum(c * c for c in counts[start:stop])
             readouts.append(self._readout(x[group, :k], pos[group, :k], onehot[group, :k], nodes_mask[group, :k],

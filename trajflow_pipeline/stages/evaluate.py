@@ -10,8 +10,8 @@ Writes, atomically, ``RUN/eval/``:
                               the other rows are per agent, or per joint group / identical-input group);
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
                               seconds, date, trajflow version and code revisions (``code_revision`` of the
-                              evaluation, ``training_code_revisions`` from run.json), data fingerprint, the run's resolved config, the
-                              digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
+                              evaluation, ``training_code_revisions`` from run.json), data fingerprint, the run's
+                              resolved config, the digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
                               whose final model has changed since), ``horizon`` (below), ``rome_fits`` and
                               ``rome_fallback_fits`` (ROME density fits made for the standard metrics, and how many
                               re-ran a failed PCA with added jitter; ``*_ext`` the same for the extended-horizon
