@@ -4,7 +4,7 @@
 
 ETH/UCY scenes are crowded and uneven (fold eth's training problems have 34 graph nodes on average and up to 75),
 so the GNN's per-edge work dominates a TrajFlow flow step on a CPU. `SocialGNN.GROUP_SIZE` problems are processed
-at a time, in order of size; a group size of at least the batch size is the former single pass over the batch.
+at a time, in order of size; a group size of at least the batch size is one pass over the batch, as before.
 For each group size the script times the forward and backward pass of the flow-stage loss on the same
 `--batches` batches of 128 training problems (one torch thread), `--rounds` times in alternation (this machine is
 shared and noisy), and prints the best time per step, in CPU seconds of this process, and its ratio to the first

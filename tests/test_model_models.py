@@ -219,28 +219,37 @@ def test_gnn_dense_and_sparse_message_passing_match_the_documented_rounds() -> N
 
 
 def test_gnn_groups_problems_by_size_without_changing_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Rounds on size-ordered groups of problems, each cut to its own extent, give each problem what one pass over
-    the whole padded batch gives, in the batch's order, gradients included; nodes need not be compacted."""
+    """Rounds on size-ordered groups of problems, each cut to its own extent, give each problem what the problem
+    gets alone, in the batch's order, gradients included; nodes need not be compacted (float64, so that only
+    rounding could differ)."""
     torch.manual_seed(0)
-    gnn = SocialGNN()
+    gnn = SocialGNN().double()
     batch, n = 21, 9
     mask = torch.rand(batch, n) < torch.linspace(0.05, 0.9, batch)[:, None]   # from nearly empty to crowded
     mask[:, 0] = True                                                            # the target
     mask[3, 1:] = False                                                          # alone
     mask[5, 1:8], mask[5, 8] = False, True                                       # a hole before its last node
-    past = 3 * torch.randn(batch, n, 8, 2)
+    past = 3 * torch.randn(batch, n, 8, 2, dtype=torch.float64)
     valid = torch.ones(batch, n, 8, dtype=torch.bool) & mask[..., None]
     types = torch.randint(0, 5, (batch, n))
-    results = []
-    for group_size in (batch, 4):
+
+    def encode(group_size: int, rows: slice | None = None) -> tuple[torch.Tensor, ...]:
         monkeypatch.setattr(SocialGNN, "GROUP_SIZE", group_size)
         leaf = past.clone().requires_grad_(True)
         gnn.zero_grad()
-        out = gnn(leaf, valid, mask, types)
+        chosen = slice(None) if rows is None else rows
+        out = gnn(leaf[chosen], valid[chosen], mask[chosen], types[chosen])
         (out ** 2).sum().backward()
-        results.append((out.detach(), leaf.grad, gnn.msg_edge.weight.grad.clone(), gnn.embed.weight.grad.clone()))
-    for grouped, whole in zip(results[1], results[0]):
-        assert torch.allclose(grouped, whole, rtol=1e-5, atol=1e-5)
+        return out.detach(), leaf.grad, gnn.msg_edge.weight.grad.clone()
+
+    grouped = encode(4)
+    alone = [encode(4, slice(i, i + 1)) for i in range(batch)]
+    assert torch.allclose(grouped[0], torch.cat([a[0] for a in alone]), rtol=1e-10, atol=1e-12)
+    assert torch.allclose(grouped[1], sum(a[1] for a in alone), rtol=1e-10, atol=1e-12)
+    assert torch.allclose(grouped[2], sum(a[2] for a in alone), rtol=1e-10, atol=1e-12)
+    whole = encode(batch)                                                        # one group: no reordering
+    for value, expected in zip(whole, grouped):
+        assert torch.allclose(value, expected, rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])

@@ -18,7 +18,7 @@ import torch
 import trajflow_pipeline
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
-from trajflow_pipeline.model import load_model, load_training_state
+from trajflow_pipeline.model import load_model, load_training_state, save_training_state
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.normalize import target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
@@ -158,11 +158,33 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
     assert json.loads((tmp_path / "parts" / "run.json").read_text())["code_revisions"] == ["rev-a", "rev-b"]
 
 
-def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypatch: pytest.MonkeyPatch,
+                                                                       tmp_path: Path) -> None:
+    """A state written by a release that kept no revisions resumes as ["unrecorded", <the code now>]."""
+    install_fake_data(monkeypatch, 64, 16)
+    options = dict(model="trajflow-no-ae", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=3"])
+
+    class Killed(Exception):
+        pass
+
+    def hook(stage: str, epoch: int) -> None:
+        if epoch == 1:
+            raise Killed()
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(Killed):
+        train(tmp_path / "data", tmp_path / "run", **options)
+    state_path = tmp_path / "run" / "checkpoints" / "state.pt"
+    state = load_training_state(state_path)
+    del state["code_revisions"], state["format"], state["format_version"]
+    save_training_state(state_path, state)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
     monkeypatch.setattr(provenance, "code_revision", lambda: "rev-b")
-    assert provenance.revisions_after(None) == ["unrecorded", "rev-b"]
+    train(tmp_path / "data", tmp_path / "run", resume=True, **options)
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["code_revisions"] == ["unrecorded", "rev-b"]
     assert provenance.revisions_after(["rev-a", "rev-b"]) == ["rev-a", "rev-b"]
-    assert provenance.revisions_after([]) == ["rev-b"]
+    monkeypatch.setattr(provenance, "code_revision", lambda: None)          # not a git checkout
+    assert provenance.revisions_after([]) == ["unknown"]
 
 
 def test_resume_restores_flomo_randomness(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

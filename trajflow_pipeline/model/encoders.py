@@ -86,16 +86,21 @@ class SocialGNN(nn.Module):
         x = self.embed(torch.cat((encoded, onehot), dim=-1))                                       # (B, n, width)
         pos = last_observed(nodes_past, nodes_valid)                                              # (B, n, 2) at t0
         extent = (nodes_mask * torch.arange(1, n + 1, device=nodes_mask.device)).amax(dim=1)  # last real node + 1
+        if x.device.type != "cpu" or batch <= self.GROUP_SIZE:  # one group, in batch order
+            k, counts = torch.stack((extent.max(), (nodes_mask.sum(1) ** 2).sum())).tolist()  # one host transfer
+            k = max(1, k)
+            return self._readout(x[:, :k], pos[:, :k], onehot[:, :k], nodes_mask[:, :k], batch * k * k <= 2 * counts)
         order = torch.argsort(extent, stable=True)
         ends, counts = torch.stack((extent[order], nodes_mask.sum(1)[order])).tolist()  # one transfer to the host
+        # Gathered once with index_select (its backward is one index_add; indexing each group from the whole batch
+        # would backpropagate a batch-sized tensor per group) and split into groups in size order.
+        groups = zip(*(t.index_select(0, order).split(self.GROUP_SIZE) for t in (x, pos, onehot, nodes_mask)))
         readouts = []
-        size = self.GROUP_SIZE if x.device.type == "cpu" else batch
-        for start in range(0, batch, size):
-            stop = min(start + size, batch)
-            group, k = order[start:stop], max(1, ends[stop - 1])
+        for start, (x_g, pos_g, onehot_g, mask_g) in zip(range(0, batch, self.GROUP_SIZE), groups):
+            stop = start + len(mask_g)
+            k = max(1, ends[stop - 1])
             dense = (stop - start) * k * k <= 2 * sum(c * c for c in counts[start:stop])
-            readouts.append(self._readout(x[group, :k], pos[group, :k], onehot[group, :k], nodes_mask[group, :k],
-                                          dense))
+            readouts.append(self._readout(x_g[:, :k], pos_g[:, :k], onehot_g[:, :k], mask_g[:, :k], dense))
         return torch.cat(readouts).index_select(0, torch.argsort(order))
 
     def _readout(self, x: Tensor, pos: Tensor, onehot: Tensor, mask: Tensor, dense: bool) -> Tensor:

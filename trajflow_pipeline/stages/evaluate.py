@@ -373,6 +373,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     options = options or EvalOptions()
     options.validate()
     started = time.perf_counter()
+    revision = code_revision()  # read now: a commit or checkout during evaluation must not be credited with it
     run = open_run(run_dir)
     ds = open_dataset(data or run.data_path)
     _check_fingerprint(run, ds.fingerprint(), force)
@@ -401,7 +402,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "max_pooled": options.max_pooled,
         "problems": len(problems), "steps": int(trajectories.shape[2]), "device": str(torch_device),
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
-        "trajflow_version": __version__, "code_revision": code_revision(),
+        "trajflow_version": __version__, "code_revision": revision,
         "training_code_revisions": run.code_revisions,
         "data_fingerprint": problems.fingerprint, "config": run.config,
         "model_digest": run.weights_digest,

@@ -66,7 +66,7 @@ from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import console, make_progress
-from ..util.provenance import revisions_after
+from ..util.provenance import code_revision, revisions_after
 
 CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
@@ -99,6 +99,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     `run_dir`.
     """
     tune_cpu_allocator()
+    code_revision()  # read now: a commit or checkout during training must not be credited with it
     run_dir = Path(run_dir)
     dist = _DistContext.from_env()
     config, previous = _resolve_config(run_dir, config_path, overrides, model, seed, device, resume)

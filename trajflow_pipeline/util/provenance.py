@@ -2,46 +2,72 @@
 
 A run trained over several sessions may be continued by newer code; `trajflow train` keeps the list of revisions
 that trained it (run.json ``code_revisions``) and `trajflow eval` records the one that evaluated it, so a number in
-a report can be traced to code as well as to config and data. An installed copy outside a git checkout has no
-revision (None); its version number is recorded as before.
+a report can be traced to code as well as to config and data.
+
+A revision is the full commit hash, with ``+changes.<hash>`` when the package's own files (``trajflow_pipeline/``,
+untracked modules included, and ``pyproject.toml``) differ from that commit (the hash tells two different sets of
+changes apart), or ``+unknown`` when git could not say. The code runs without a revision (None, recorded as
+"unknown" in a run's list) outside a git checkout; "unrecorded" stands for training done before revisions were kept.
+The revision is read once per process, when training or evaluation starts.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import os
 import subprocess
 from pathlib import Path
 
 #: the revision recorded for training done before trajflow kept revisions
 UNRECORDED = "unrecorded"
+#: what a run's list records for code that has no revision (not a git checkout)
+UNKNOWN = "unknown"
+#: the paths whose changes make the running code differ from its commit
+_PACKAGE_PATHS = ("trajflow_pipeline", "pyproject.toml")
 
 
 @functools.cache
 def code_revision() -> str | None:
-    """The commit of the checkout this package runs from ("<sha>", or "<sha>+changes" when tracked files differ
-    from it), None when the package does not run from a git checkout or git is not available."""
-    root = Path(__file__).resolve().parents[2]
+    """The revision of the checkout this package runs from (see the module docstring); cached per process."""
+    return revision_of(Path(__file__).resolve().parents[2])
 
+
+def revision_of(root: Path) -> str | None:
+    """The revision of the trajflow source at `root`, None when `root` is not the top of a git checkout of it."""
     def git(*args: str) -> str | None:
         try:
-            done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10)
+            done = subprocess.run(["git", "--no-optional-locks", "-C", str(root), *args], capture_output=True,
+                                  text=True, timeout=20, env=environment)
         except (OSError, subprocess.TimeoutExpired):
             return None
-        return done.stdout.strip() if done.returncode == 0 else None
+        return done.stdout if done.returncode == 0 else None
 
+    # Inherited GIT_* variables (GIT_DIR, GIT_WORK_TREE...) would point git at another repository.
+    environment = {key: value for key, value in os.environ.items() if not key.startswith("GIT_")}
     top = git("rev-parse", "--show-toplevel")
-    if top is None or Path(top).resolve() != root or not (root / "trajflow_pipeline").is_dir():
+    if top is None or Path(top.strip()).resolve() != root.resolve() or not (root / "trajflow_pipeline").is_dir():
         return None
-    sha = git("rev-parse", "--short=12", "HEAD")
+    sha = git("rev-parse", "HEAD")
     if sha is None:
         return None
-    changes = git("status", "--porcelain", "--untracked-files=no")
-    return f"{sha}+changes" if changes else sha
+    status = git("status", "--porcelain", "--untracked-files=all", "--", *_PACKAGE_PATHS)
+    diff = git("diff", "HEAD", "--", *_PACKAGE_PATHS)
+    if status is None or diff is None:
+        return f"{sha.strip()}+unknown"
+    if not status.strip():
+        return sha.strip()
+    digest = hashlib.sha256(diff.encode())
+    for line in sorted(status.splitlines()):
+        if line.startswith("??"):  # untracked: its content is part of what runs
+            path = root / line[3:].strip()
+            digest.update(line.encode() + (path.read_bytes() if path.is_file() else b""))
+    return f"{sha.strip()}+changes.{digest.hexdigest()[:12]}"
 
 
 def revisions_after(previous: list[str] | None) -> list[str]:
     """The revisions that trained a run, once the current code takes over from `previous` (None: training that
     started before revisions were kept, recorded as UNRECORDED)."""
     revisions = [UNRECORDED] if previous is None else list(previous)
-    current = code_revision() or "unknown"
+    current = code_revision() or UNKNOWN
     return revisions if revisions and revisions[-1] == current else [*revisions, current]
