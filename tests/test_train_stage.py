@@ -178,8 +178,13 @@ def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypat
     state = load_training_state(state_path)
     del state["code_revisions"], state["format"], state["format_version"]
     save_training_state(state_path, state)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
     monkeypatch.setattr(provenance, "code_revision", lambda: "rev-b")
+    monkeypatch.setattr(train_stage, "_epoch_hook", lambda stage, epoch: hook(stage, epoch - 1))
+    with pytest.raises(Killed):  # run.json names the continuing code while it trains, not only once it is done
+        train(tmp_path / "data", tmp_path / "run", resume=True, **options)
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert (info["status"], info["code_revisions"]) == ("training", ["unrecorded", "rev-b"])
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
     train(tmp_path / "data", tmp_path / "run", resume=True, **options)
     assert json.loads((tmp_path / "run" / "run.json").read_text())["code_revisions"] == ["unrecorded", "rev-b"]
     assert provenance.revisions_after(["rev-a", "rev-b"]) == ["rev-a", "rev-b"]

@@ -413,6 +413,8 @@ class _Session:
                     self._write_run_info("training")
                 save_training_state(state_path, state)
                 atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
+            elif self.writer and not _trained(self.run_dir):  # run.json names the code that continues it
+                self._write_run_info("training")
         elif resume and (self.run_dir / FINAL_DIR).exists():
             raise UsageError(f"{self.run_dir}: {STATE_FILE} is missing, so this run cannot be continued or given a "
                              f"larger budget; train into a new directory")
