@@ -26,7 +26,7 @@ from typing import Any
 import polars as pl
 
 from ..data import list_folds
-from ..errors import DataError, UsageError
+from ..errors import DataError, TrajflowError, UsageError
 from ..model.config import RunConfig, load_config
 from ..model.models import MODEL_CLASSES
 from .evaluate import EVAL_DIR
@@ -280,7 +280,7 @@ def _run_status(out: Path, config: ExperimentConfig, model: str, fold: str | Non
     busy = claims.held(out / "runs" / f".{name}.lock")
     try:
         return _inspect_run(out / "runs" / name, config, model, fold, seed, busy)
-    except (DataError, UsageError) as error:
+    except TrajflowError as error:
         return RunStatus(name=name, model=model, fold=fold, seed=seed, state="unreadable", busy=busy, progress=None,
                          train_seconds=0.0, eval_seconds=None, metrics={}, problem=str(error))
 
@@ -291,6 +291,7 @@ _UNFINISHED = ("training", "interrupted", "training or interrupted")
 
 def _inspect_run(run_dir: Path, config: ExperimentConfig, model: str, fold: str | None, seed: int,
                  busy: bool | None) -> RunStatus:
+    """The state of the run in `run_dir` from its files and its claim (`busy`), its progress and its times."""
     info = _read_json(run_dir / RUN_FILE)
     overrides = run_overrides(config, model)
     if info is None:
