@@ -11,7 +11,7 @@ import pytest
 from trajflow_pipeline.util import provenance
 from trajflow_pipeline.util.provenance import revision_of
 
-pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
+needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
 
 
 def git(root: Path, *args: str) -> str:
@@ -33,6 +33,7 @@ def checkout(tmp_path: Path) -> Path:
     return root
 
 
+@needs_git
 def test_a_clean_checkout_is_its_commit_and_package_changes_are_marked(checkout: Path) -> None:
     head = git(checkout, "rev-parse", "HEAD")
     assert revision_of(checkout) == head
@@ -49,6 +50,7 @@ def test_a_clean_checkout_is_its_commit_and_package_changes_are_marked(checkout:
     assert (revision_of(checkout) or "").startswith(f"{head}+changes.")
 
 
+@needs_git
 def test_no_revision_outside_a_checkout_of_trajflow(checkout: Path, tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     plain = tmp_path / "plain"
@@ -62,6 +64,7 @@ def test_no_revision_outside_a_checkout_of_trajflow(checkout: Path, tmp_path: Pa
     assert revision_of(checkout) == git(checkout, "--git-dir", str(checkout / ".git"), "rev-parse", "HEAD")
 
 
+@needs_git
 def test_git_failing_half_way_is_unknown_not_clean(checkout: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     real_run = subprocess.run
 
@@ -72,3 +75,10 @@ def test_git_failing_half_way_is_unknown_not_clean(checkout: Path, monkeypatch: 
 
     monkeypatch.setattr(provenance.subprocess, "run", failing_status)
     assert (revision_of(checkout) or "").endswith("+unknown")
+
+
+def test_machines_are_described_and_listed_as_they_change() -> None:
+    cpu = provenance.machine_description("cpu")
+    assert cpu.startswith("CPU: ") and cpu.endswith(" cores")
+    assert provenance.machines_after(None, "cpu") == ["unrecorded", cpu]
+    assert provenance.appended(["GPU: Y"], cpu) == ["GPU: Y", cpu] and provenance.appended([cpu], cpu) == [cpu]

@@ -348,6 +348,25 @@ def test_evaluation_warnings_and_rome_fallbacks_are_reported(tmp_path: Path) -> 
     assert f"Evaluation warning (trajflow-eth-s0, trajflow-hotel-s0): {short}" in markdown
 
 
+def test_compute_time_and_machines_per_model(tmp_path: Path) -> None:
+    """Training time from the logs' epoch times and evaluation time from eval.json, summed per model, with the
+    machines that trained and evaluated the runs where they were recorded."""
+    runs = [write_run(tmp_path / "runs", model=m, dataset="eth_ucy", fold=f, seed=0)
+            for m in ("trajflow", "cv") for f in ("eth", "hotel")]
+    for run in runs[:2]:
+        info = json.loads((run / "eval" / "eval.json").read_text())
+        (run / "eval" / "eval.json").write_text(json.dumps({
+            **info, "seconds": 5400.0, "machine": "CPU: X, 2 cores",
+            "training_machines": ["unrecorded", "CPU: X, 2 cores"] if run.name.endswith("eth-s0") else ["GPU: Y"]}))
+    markdown = (report(runs, tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
+    section = markdown[markdown.index("### Compute"):]
+    # trajflow: 10 logged epochs of 0.1 s per run; cv runs have no training log
+    assert _table_row(section, "TrajFlow") == ["TrajFlow", "2", "2 s", "3.0 h", "unrecorded; CPU: X, 2 cores; GPU: Y",
+                                               "CPU: X, 2 cores"]
+    assert _table_row(section, "Constant velocity") == ["Constant velocity", "2", "—", "3 s", "not recorded",
+                                                        "not recorded"]
+
+
 def test_settings_that_differ_from_the_paper_are_named(tmp_path: Path) -> None:
     """A reduced budget or a change of ours shows next to the numbers; keys that only identify a run do not."""
     runs = [write_run(tmp_path / "runs", model=m, dataset="eth_ucy", fold=f, seed=0)

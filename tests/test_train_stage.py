@@ -128,7 +128,9 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
                                                              "train.flow_max_epochs=3", "train.ae_batch_size=32",
                                                              "train.flow_batch_size=32"])
     whole = train(tmp_path / "data", tmp_path / "whole", **options)
-    assert json.loads((whole / "run.json").read_text())["code_revisions"] == [provenance.code_revision() or "unknown"]
+    whole_info = json.loads((whole / "run.json").read_text())
+    assert whole_info["code_revisions"] == [provenance.code_revision() or "unknown"]
+    assert whole_info["machines"] == [provenance.machine_description("cpu")]
 
     class Killed(Exception):
         pass
@@ -184,6 +186,7 @@ def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypat
         train(tmp_path / "data", tmp_path / "run", resume=True, **options)
     info = json.loads((tmp_path / "run" / "run.json").read_text())
     assert (info["status"], info["code_revisions"]) == ("training", ["unrecorded", "rev-b"])
+    assert info["machines"] == [provenance.machine_description("cpu")]  # the state still had its machines
     monkeypatch.setattr(train_stage, "_epoch_hook", None)
     train(tmp_path / "data", tmp_path / "run", resume=True, **options)
     assert json.loads((tmp_path / "run" / "run.json").read_text())["code_revisions"] == ["unrecorded", "rev-b"]

@@ -16,6 +16,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from ..stages.status import ExperimentStatus, RunStatus, StageProgress
+from ..util.progress import duration_text
 from .common import user_errors
 
 #: how each state is shown
@@ -50,15 +51,15 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
     for run in status.runs:
         metrics = [run.metrics.get("min_ade"), run.metrics.get("min_fde")]
         table.add_row(run.name, f"[{_STATE_STYLE.get(run.state, '')}]{run.state}[/]", *_progress_cells(run),
-                      _duration(run.train_seconds) if run.train_seconds else "",
+                      duration_text(run.train_seconds) if run.train_seconds else "",
                       "/".join(f"{v:.3f}" for v in metrics if v is not None))
     out.print(table)
     states = Counter(run.state for run in status.runs)
     trained = sum(run.train_seconds for run in status.runs)
     evaluated = sum(run.eval_seconds or 0.0 for run in status.runs)
     summary = ", ".join(f"{count} {state}" for state, count in states.most_common())
-    out.print(f"{len(status.runs)} runs: {summary}. Time so far, summed over runs: training {_duration(trained)}, "
-              f"evaluation {_duration(evaluated)}.", highlight=False)
+    out.print(f"{len(status.runs)} runs: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
+              f"evaluation {duration_text(evaluated)}.", highlight=False)
     for run in status.runs:
         if run.problem:
             out.print(f"[red]{run.name}:[/] {escape(run.problem)}", highlight=False)
@@ -82,17 +83,8 @@ def _progress_cells(run: RunStatus) -> list[str]:
     remaining = ""
     if training and left is not None and progress.seconds_per_epoch is not None:
         fewest, most = (n * progress.seconds_per_epoch for n in left)
-        remaining = _duration(most) if fewest == most else f"{_duration(fewest)}-{_duration(most)}"
+        remaining = duration_text(most) if fewest == most else f"{duration_text(fewest)}-{duration_text(most)}"
     elif training and left is not None and left != (0, 0):
         remaining = f"{left[0]}-{left[1]} epochs" if left[0] != left[1] else f"{left[1]} epochs"
     return [epoch, best_text, "" if progress.seconds_per_epoch is None else f"{progress.seconds_per_epoch:.1f}",
             remaining]
-
-
-def _duration(seconds: float) -> str:
-    """A readable duration: seconds, minutes or hours."""
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 90 * 60:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"

@@ -247,8 +247,8 @@ def scan_ground_truth(run: Run) -> pl.LazyFrame:
     return scan_table(run.eval_dir / "ground_truth.parquet", GROUND_TRUTH_COLUMNS, what="ground-truth table")
 
 
-def load_train_log(run: Run) -> pl.DataFrame | None:
-    """The run's training log (epoch, stage, train_loss, val_loss), or None when the run has none (e.g. cv)."""
+def _scan_train_log(run: Run) -> tuple[pl.LazyFrame, Path] | None:
+    """The run's training log, checked against the log columns, and its path (None when the run has none)."""
     for name in TRAIN_LOGS:
         path = run.path / name
         if not path.is_file():
@@ -258,8 +258,25 @@ def load_train_log(run: Run) -> pl.DataFrame | None:
                      else pl.scan_parquet(path))
         except (pl.exceptions.PolarsError, OSError) as error:
             raise DataError(f"unreadable training log ({error})", path) from None
-        frame = _conform(frame, path, TRAIN_LOG_COLUMNS, TRAIN_LOG_OPTIONAL, what="training log")
-        if "val_loss" not in frame.collect_schema():
-            frame = frame.with_columns(val_loss=pl.lit(None, pl.Float64))
-        return collect(frame.select("epoch", "stage", "train_loss", "val_loss"), path, "training log")
+        return _conform(frame, path, TRAIN_LOG_COLUMNS, TRAIN_LOG_OPTIONAL, what="training log"), path
     return None
+
+
+def load_train_log(run: Run) -> pl.DataFrame | None:
+    """The run's training log (epoch, stage, train_loss, val_loss), or None when the run has none (e.g. cv)."""
+    scanned = _scan_train_log(run)
+    if scanned is None:
+        return None
+    frame, path = scanned
+    if "val_loss" not in frame.collect_schema():
+        frame = frame.with_columns(val_loss=pl.lit(None, pl.Float64))
+    return collect(frame.select("epoch", "stage", "train_loss", "val_loss"), path, "training log")
+
+
+def training_seconds(run: Run) -> float | None:
+    """The sum of the epoch times in the run's training log (None: no log, or a log without times)."""
+    scanned = _scan_train_log(run)
+    if scanned is None or "seconds" not in scanned[0].collect_schema():
+        return None
+    frame, path = scanned
+    return float(collect(frame.select(pl.col("seconds").sum()), path, "training log").item())

@@ -10,7 +10,8 @@ Writes, atomically, ``RUN/eval/``:
                               the other rows are per agent, or per joint group / identical-input group);
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
                               seconds, date, trajflow version and code revisions (``code_revision`` of the
-                              evaluation, ``training_code_revisions`` from run.json), data fingerprint, the run's
+                              evaluation, ``training_code_revisions`` from run.json), the machines (``machine``
+                              that evaluated, ``training_machines``), data fingerprint, the run's
                               resolved config, the digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
                               whose final model has changed since), ``horizon`` (below), ``rome_fits`` and
                               ``rome_fallback_fits`` (ROME density fits made for the standard metrics, and how many
@@ -63,7 +64,7 @@ from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import open_dataset
 from ..util.atomic import atomic_directory
 from ..util.progress import console, make_progress
-from ..util.provenance import code_revision
+from ..util.provenance import code_revision, machine_description
 from .runs import RunInfo, open_run
 
 EVAL_DIR = "eval"
@@ -403,7 +404,8 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "problems": len(problems), "steps": int(trajectories.shape[2]), "device": str(torch_device),
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "code_revision": revision,
-        "training_code_revisions": run.code_revisions,
+        "training_code_revisions": run.code_revisions, "machine": machine_description(str(torch_device)),
+        "training_machines": run.machines,
         "data_fingerprint": problems.fingerprint, "config": run.config,
         "model_digest": run.weights_digest,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,

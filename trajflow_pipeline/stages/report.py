@@ -30,7 +30,7 @@ from .. import __version__
 from ..errors import TrajflowError, UsageError
 from ..model.config import RunConfig
 from ..report.collect import (Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs,
-                              scan_ground_truth, scan_predictions)
+                              scan_ground_truth, scan_predictions, training_seconds)
 from ..report.curves import min_ade_curve
 from ..report.document import Block, Bullets, Cell, Code, Figure, Heading, Paragraph, Table
 from ..report.figures import plot_density, plot_examples, plot_min_ade_k, plot_training
@@ -39,7 +39,7 @@ from ..report.render import slug, to_html, to_markdown
 from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
 from ..report.tables import comparisons, fold_stats, fold_tables, summary_stats, summary_table, targets
 from ..util.atomic import atomic_directory
-from ..util.progress import make_progress
+from ..util.progress import duration_text, make_progress
 
 REPORT_FILES = ("report.md", "report.html", "report.json")
 FIGURE_DIR = "figures"
@@ -283,9 +283,38 @@ def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_f
         blocks.append(Heading(3, "Per fold"))
         for spec, table in fold_tables(per_fold.filter(pl.col("dataset") == dataset)):
             blocks += [Heading(4, spec.label), table]
+    blocks += _compute(runs)
     if figures:
         blocks += _figures(dataset, runs, max_examples, progress)
     return blocks
+
+
+def _compute(runs: list[Run]) -> list[Block]:
+    """Per model: training and evaluation time summed over runs, and the machines that trained and evaluated them
+    (eval.json, from run.json for training; older runs did not record machines)."""
+    rows = []
+    for model in model_order([r.model for r in runs]):
+        members = [r for r in runs if r.model == model]
+        trained = [s for r in members if (s := training_seconds(r)) is not None]
+        evaluated = [float(r.info["seconds"]) for r in members if isinstance(r.info.get("seconds"), (int, float))]
+        trained_on = _distinct(m for r in members for m in (r.info.get("training_machines") or ()))
+        evaluated_on = _distinct(r.info["machine"] for r in members if r.info.get("machine"))
+        rows.append(tuple(Cell(text) for text in (
+            model_label(model), str(len(members)),
+            duration_text(sum(trained)) + ("" if len(trained) == len(members) else f" ({len(trained)} runs)")
+            if trained else "—",
+            duration_text(sum(evaluated)) if evaluated else "—",
+            "; ".join(trained_on) or "not recorded", "; ".join(evaluated_on) or "not recorded")))
+    return [Heading(3, "Compute"),
+            Paragraph("Training: the epoch times of the training logs, summed over runs (several runs may have "
+                      "trained at once, so the wall time can be shorter); evaluation: eval.json's seconds, summed."),
+            Table(header=("model", "runs", "training", "evaluation", "trained on", "evaluated on"),
+                  rows=tuple(rows), numeric=(False, True, True, True, False, False))]
+
+
+def _distinct(values: Any) -> list[str]:
+    """The distinct strings of `values`, in first-seen order."""
+    return list(dict.fromkeys(str(v) for v in values))
 
 
 def _fingerprint_text(fingerprint: Any) -> str:

@@ -30,8 +30,9 @@ class RunInfo:
     config: dict[str, Any] = field(default_factory=dict)
     #: digest of the final weights (run.json; None for runs trained before trajflow recorded it)
     weights_digest: str | None = None
-    #: the code revisions that trained it, oldest first (run.json; None before trajflow recorded them)
+    #: the code revisions and the machines that trained it, oldest first (run.json; None where not recorded)
     code_revisions: tuple[str, ...] | None = None
+    machines: tuple[str, ...] | None = None
 
     @property
     def name(self) -> str:
@@ -74,7 +75,11 @@ def open_run(run_dir: str | Path) -> RunInfo:
                        seed=int(info["seed"]), data_path=Path(info["data_dir"]),
                        fingerprint=dict(info.get("fingerprint", {})), config=config,
                        weights_digest=weights_digest(info),
-                       code_revisions=(tuple(map(str, info["code_revisions"]))
-                                       if isinstance(info.get("code_revisions"), list) else None))
+                       code_revisions=_strings(info.get("code_revisions")), machines=_strings(info.get("machines")))
     except (KeyError, TypeError, ValueError) as error:
         raise TrajflowError(f"{info_path}: incomplete run description ({error})") from None
+
+
+def _strings(value: Any) -> tuple[str, ...] | None:
+    """A run.json list as a tuple of strings (None when absent)."""
+    return tuple(map(str, value)) if isinstance(value, list) else None

@@ -66,7 +66,7 @@ from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import console, make_progress
-from ..util.provenance import code_revision, revisions_after
+from ..util.provenance import code_revision, machines_after, revisions_after
 
 CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
@@ -390,8 +390,12 @@ class _Session:
     best: dict[str, dict[str, float]] = field(default_factory=dict)
     skipped_total: int = 0
     started: str = field(default_factory=lambda: dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
-    #: the code revisions that trained this run, oldest first (see util.provenance)
+    #: the code revisions and the machines that trained this run, oldest first (see util.provenance)
     code_revisions: list[str] = field(default_factory=lambda: revisions_after([]))
+    machines: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.machines = self.machines or machines_after([], str(self.device))
 
     @property
     def writer(self) -> bool:
@@ -643,6 +647,7 @@ class _Session:
             "skipped_total": self.skipped_total,
             "started": self.started,
             "code_revisions": self.code_revisions,
+            "machines": self.machines,
         })
 
     def _follow_budget(self, state: dict[str, Any]) -> tuple[dict[str, Any] | None, bool, bool]:
@@ -717,6 +722,7 @@ class _Session:
         self.skipped_total = int(state["skipped_total"])
         self.started = str(state["started"])
         self.code_revisions = revisions_after(state.get("code_revisions"))
+        self.machines = machines_after(state.get("machines"), str(self.device))
         progress = _progress_from(state)
         if self.writer and not self.quiet:
             console.print(f"[dim]resuming {self.run_dir}: stage {int(state['stage_index']) + 1}, "
@@ -753,7 +759,7 @@ class _Session:
             "n_train": len(self.data.train), "n_val": len(self.data.val), "validation": self.data.validation,
             "log_lik_space": self.model.log_lik_space, "world_size": self.dist.world, "device": str(self.device),
             "cpu_threads": torch.get_num_threads(), "best": self.best, "skipped_steps": self.skipped_total,
-            "started": self.started, "code_revisions": self.code_revisions,
+            "started": self.started, "code_revisions": self.code_revisions, "machines": self.machines,
             "final": f"{FINAL_DIR}/model.safetensors" if status == "finished" else None,
         }
         if status == "finished":

@@ -24,3 +24,12 @@ def make_progress(quiet: bool = False, *extra_columns: object) -> Progress:
         disable=quiet,
         transient=False,
     )
+
+
+def duration_text(seconds: float) -> str:
+    """A readable duration for tables and summaries: seconds, minutes or hours."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

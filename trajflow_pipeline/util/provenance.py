@@ -1,4 +1,5 @@
-"""Which code produced a result: the git commit of the running trajflow source, when it runs from a checkout.
+"""Which code and which machine produced a result: the git commit of the running trajflow source, when it runs
+from a checkout, and the processor or GPU model.
 
 A run trained over several sessions may be continued by newer code; `trajflow train` keeps the list of revisions
 that trained it (run.json ``code_revisions``) and `trajflow eval` records the one that evaluated it, so a number in
@@ -8,7 +9,8 @@ A revision is the full commit hash, with ``+changes.<hash>`` when the package's 
 untracked modules included, and ``pyproject.toml``) differ from that commit (the hash tells two different sets of
 changes apart), or ``+unknown`` when git could not say. The code runs without a revision (None, recorded as
 "unknown" in a run's list) outside a git checkout; "unrecorded" stands for training done before revisions were kept.
-The revision is read once per process, when training or evaluation starts.
+The revision is read once per process, when training or evaluation starts. Machines are recorded the same way
+(run.json ``machines``, eval.json ``machine``), so a result says which hardware produced it.
 """
 
 from __future__ import annotations
@@ -68,6 +70,40 @@ def revision_of(root: Path) -> str | None:
 def revisions_after(previous: list[str] | None) -> list[str]:
     """The revisions that trained a run, once the current code takes over from `previous` (None: training that
     started before revisions were kept, recorded as UNRECORDED)."""
-    revisions = [UNRECORDED] if previous is None else list(previous)
-    current = code_revision() or UNKNOWN
-    return revisions if revisions and revisions[-1] == current else [*revisions, current]
+    return appended(previous, code_revision() or UNKNOWN)
+
+
+def machines_after(previous: list[str] | None, device: str) -> list[str]:
+    """The machines that trained a run, once this one (training on `device`) takes over from `previous`."""
+    return appended(previous, machine_description(device))
+
+
+def appended(previous: list[str] | None, current: str) -> list[str]:
+    """`previous` (None: before such records were kept, UNRECORDED) followed by `current` unless it is the last."""
+    history = [UNRECORDED] if previous is None else list(previous)
+    return history if history and history[-1] == current else [*history, current]
+
+
+def machine_description(device: str) -> str:
+    """What computes on `device` ("cpu", "cuda:0"...): the processor's or the GPU's model and how many cores or
+    GPUs the machine has, e.g. "CPU: AMD EPYC 7B13, 2 cores" or "GPU: NVIDIA H200 (1 of 1)"."""
+    if device.startswith("cuda"):
+        import torch
+
+        index = torch.device(device).index or 0
+        return f"GPU: {torch.cuda.get_device_name(index)} ({index + 1} of {torch.cuda.device_count()})"
+    return f"CPU: {_processor_name()}, {os.cpu_count() or '?'} cores"
+
+
+@functools.cache
+def _processor_name() -> str:
+    """The CPU model (Linux: /proc/cpuinfo; elsewhere what the platform module knows)."""
+    import platform
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name") and ":" in line:
+                return " ".join(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown processor"
