@@ -87,9 +87,9 @@ class SocialGNN(nn.Module):
         pos = last_observed(nodes_past, nodes_valid)                                              # (B, n, 2) at t0
         extent = (nodes_mask * torch.arange(1, n + 1, device=nodes_mask.device)).amax(dim=1)  # last real node + 1
         if x.device.type != "cpu" or batch <= self.GROUP_SIZE:  # one group, in batch order
-            k, counts = torch.stack((extent.max(), (nodes_mask.sum(1) ** 2).sum())).tolist()  # one host transfer
+            k, edges = torch.stack((extent.max(), (nodes_mask.sum(1) ** 2).sum())).tolist()  # one host transfer
             k = max(1, k)
-            return self._readout(x[:, :k], pos[:, :k], onehot[:, :k], nodes_mask[:, :k], batch * k * k <= 2 * counts)
+            return self._readout(x[:, :k], pos[:, :k], onehot[:, :k], nodes_mask[:, :k], batch * k * k <= 2 * edges)
         order = torch.argsort(extent, stable=True)
         ends, counts = torch.stack((extent[order], nodes_mask.sum(1)[order])).tolist()  # one transfer to the host
         # Gathered once with index_select (its backward is one index_add; indexing each group from the whole batch

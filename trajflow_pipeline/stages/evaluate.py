@@ -11,9 +11,9 @@ Writes, atomically, ``RUN/eval/``:
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
                               seconds, date, trajflow version and code revisions (``code_revision`` of the
                               evaluation, ``training_code_revisions`` from run.json), the machines (``machine``
-                              that evaluated, ``training_machines``), data fingerprint, the run's
-                              resolved config, the digest of the evaluated weights (``model_digest``: an experiment re-evaluates a run
-                              whose final model has changed since), ``horizon`` (below), ``rome_fits`` and
+                              that evaluated, ``training_machines``), data fingerprint, the run's resolved config,
+                              the digest of the evaluated weights (``model_digest``: an experiment re-evaluates a
+                              run whose final model has changed since), ``horizon`` (below), ``rome_fits`` and
                               ``rome_fallback_fits`` (ROME density fits made for the standard metrics, and how many
                               re-ran a failed PCA with added jitter; ``*_ext`` the same for the extended-horizon
                               metrics), and any ``warnings`` (a truncated horizon).

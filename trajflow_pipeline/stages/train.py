@@ -391,10 +391,11 @@ class _Session:
     skipped_total: int = 0
     started: str = field(default_factory=lambda: dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"))
     #: the code revisions and the machines that trained this run, oldest first (see util.provenance)
-    code_revisions: list[str] = field(default_factory=lambda: revisions_after([]))
+    code_revisions: list[str] = field(default_factory=list)
     machines: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        self.code_revisions = self.code_revisions or revisions_after([])
         self.machines = self.machines or machines_after([], str(self.device))
 
     @property
