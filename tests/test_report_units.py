@@ -118,6 +118,10 @@ def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
 def test_provenance_names_the_code_that_trained_and_evaluated_a_run() -> None:
     from trajflow_pipeline.stages.report import _code_text
 
+    a, b = "a" * 40, "b" * 40
     assert _code_text({"trajflow_version": "0.1.0"}) == "0.1.0"
-    assert _code_text({"trajflow_version": "0.1.0", "code_revision": "bbb", "training_code_revisions": [
-        "unrecorded", "aaa"]}) == "0.1.0 (unrecorded, aaa, eval bbb)"
+    assert _code_text({"trajflow_version": "0.1.0", "code_revision": a, "training_code_revisions": [a]}) == (
+        "0.1.0 (aaaaaaaaaaaa)")
+    assert _code_text({"trajflow_version": "0.1.0", "code_revision": f"{b}+changes.0123456789ab",
+                       "training_code_revisions": ["unrecorded", a]}) == (
+        "0.1.0 (trained by unrecorded, aaaaaaaaaaaa; evaluated by bbbbbbbbbbbb+changes.0123456789ab)")

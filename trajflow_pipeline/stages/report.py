@@ -348,12 +348,21 @@ def _provenance(runs: list[Run]) -> list[Block]:
 
 
 def _code_text(info: dict[str, Any]) -> str:
-    """trajflow version, and the code revisions that trained (-> evaluated) the run where they were recorded."""
+    """trajflow version, and the code revisions (cut to 12 characters) that trained and evaluated the run where
+    they were recorded."""
+    def short(revision: Any) -> str:
+        commit, plus, rest = str(revision).partition("+")
+        return commit[:12] + plus + rest
+
     text = str(info.get("trajflow_version", "—"))
-    trained = info.get("training_code_revisions")
-    revisions = [*(trained if isinstance(trained, list) else []),
-                 *([f"eval {info['code_revision']}"] if info.get("code_revision") else [])]
-    return f"{text} ({', '.join(map(str, revisions))})" if revisions else text
+    recorded = info.get("training_code_revisions")
+    trained = [short(r) for r in recorded] if isinstance(recorded, list) else []
+    evaluated = short(info["code_revision"]) if info.get("code_revision") else None
+    if trained == [evaluated] and evaluated:
+        return f"{text} ({evaluated})"
+    parts = ([f"trained by {', '.join(trained)}"] if trained else []) + (
+        [f"evaluated by {evaluated}"] if evaluated else [])
+    return f"{text} ({'; '.join(parts)})" if parts else text
 
 
 def _json_safe(value: Any) -> Any:
