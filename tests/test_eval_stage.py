@@ -68,6 +68,32 @@ def test_eval_records_rome_fallbacks_even_when_quiet(tiny_run: Path, tmp_path: P
     assert (info["rome_fits"], info["rome_fallback_fits"]) == (2, 1) and "rome_fits_ext" not in info
 
 
+def test_an_interrupted_evaluation_resumes_its_rome_fits(tiny_run: Path, tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from trajflow_pipeline.metrics import parallel
+
+    run = Path(shutil.copytree(tiny_run, tmp_path / "run"))
+    shutil.rmtree(run / "eval", ignore_errors=True)
+    real_fit, calls = parallel._fit_and_score, []
+
+    def fit_once(task, seed):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(seed)
+        return real_fit(task, seed)
+
+    monkeypatch.setattr(parallel, "CACHE_EVERY", 1)
+    monkeypatch.setattr(parallel, "_fit_and_score", fit_once)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate(run, options=FAST, quiet=True)
+    assert not (run / "eval").exists() and list((run / "eval-cache").glob("*/part-*.npz"))
+    monkeypatch.setattr(parallel, "_fit_and_score", real_fit)
+    resumed = pl.read_parquet(evaluate(run, options=FAST, quiet=True) / "metrics.parquet")
+    assert not (run / "eval-cache").exists()
+    fresh = pl.read_parquet(evaluate(tiny_run, options=FAST, quiet=True) / "metrics.parquet")
+    assert resumed.drop("run").equals(fresh.drop("run"))
+
+
 def test_eval_is_deterministic_and_parallel_equals_serial(tiny_run: Path, tmp_path: Path) -> None:
     first = evaluate(tiny_run, options=FAST, quiet=True)
     before = pl.read_parquet(first / "metrics.parquet"), pl.read_parquet(first / "predictions.parquet")

@@ -97,3 +97,41 @@ def test_rome_pca_fallback_is_counted_not_printed(capsys: pytest.CaptureFixture)
     assert tally.note().startswith("2 of 7 ROME fits re-ran a failed PCA") and RomeFallbacks().note() == ""
     assert all(np.isfinite(r[0]).all() for r in results)
     assert not hasattr(rome_module, "print")  # the module's own print is restored afterwards
+
+
+def test_an_interrupted_rome_run_resumes_from_its_cache(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Finished fits are saved as they come; a rerun over the same tasks fits only the others and returns the very
+    same arrays; other tasks (here: another seed) never reuse them."""
+    from trajflow_pipeline.metrics import parallel
+
+    pred, gt, _, _ = _case(seed=4, n_samples=20)
+    tasks = [RomeTask(fit=pred[a].reshape(20, -1), queries=(gt[a].reshape(1, -1), pred[a, :3].reshape(3, -1)))
+             for a in range(pred.shape[0])]
+    reference = run_rome_tasks(tasks, workers=1, quiet=True, base_seed=5)
+    real_fit, calls = parallel._fit_and_score, []
+
+    def fit_until(limit: int):
+        def fit(task, seed):
+            if len(calls) >= limit:
+                raise KeyboardInterrupt
+            calls.append(seed)
+            return real_fit(task, seed)
+        return fit
+
+    monkeypatch.setattr(parallel, "CACHE_EVERY", 2)
+    monkeypatch.setattr(parallel, "_fit_and_score", fit_until(5))
+    with pytest.raises(KeyboardInterrupt):
+        run_rome_tasks(tasks, workers=1, quiet=True, base_seed=5, cache=tmp_path)
+    calls.clear()
+    monkeypatch.setattr(parallel, "_fit_and_score", fit_until(100))
+    resumed = run_rome_tasks(tasks, workers=1, quiet=True, base_seed=5, cache=tmp_path)
+    assert len(calls) == len(tasks) - 4                      # the fifth fit was never saved: parts hold 2 + 2
+    for got, expected in zip(resumed, reference):
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a, b)
+    calls.clear()
+    run_rome_tasks(tasks, workers=1, quiet=True, base_seed=6, cache=tmp_path)
+    assert len(calls) == len(tasks)                          # other seeds: other results, nothing reused
+    monkeypatch.setattr(parallel, "_fit_and_score", fit_until(0))
+    again = run_rome_tasks(tasks, workers=2, quiet=True, base_seed=5, cache=tmp_path)  # everything saved: no fit
+    np.testing.assert_array_equal(again[3][1], reference[3][1])

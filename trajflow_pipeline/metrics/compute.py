@@ -19,6 +19,7 @@ see `metrics.displacement` and `metrics.density` for what that means per metric.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import polars as pl
@@ -75,7 +76,8 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
                     group_id: np.ndarray | None = None, k: int = DEFAULT_K, t_eval: int | None = None,
                     horizon: np.ndarray | None = None, metrics: Sequence[str] = METRIC_NAMES,
                     pool_groups: bool = True, max_pooled: int | None = None, workers: int | None = None,
-                    quiet: bool = False, seed: int = 0, fallbacks: RomeFallbacks | None = None) -> pl.DataFrame:
+                    quiet: bool = False, seed: int = 0, fallbacks: RomeFallbacks | None = None,
+                    rome_cache: Path | None = None) -> pl.DataFrame:
     """Evaluate `pred` (A, S, T, 2) against `gt` (A, T, 2) (metres) and return the long table described above.
 
     joint_key  (A,) int: agents predicted together (same scene and t0) — joint metrics; None: each agent alone
@@ -91,6 +93,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     workers    processes for the ROME fits (None: all cores; 1: in this process); numbers do not depend on it.
     seed       drives only the subsampling / chunking of large pooled sets and the per-fit RNG seeds.
     fallbacks  tally of the ROME fits that needed ROME's PCA fallback (see `metrics.parallel`).
+    rome_cache directory keeping finished ROME fits, so that an interrupted evaluation resumes (`metrics.rome_cache`).
     """
     wanted = check_metric_names(metrics)
     n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
@@ -119,7 +122,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     if density_wanted:
         res = density_metrics(pred, gt, metrics=density_wanted, joint_key=joint_key, group_id=group_id,
                               horizon=steps, pool_groups=pool_groups, max_pooled=max_pooled, workers=workers,
-                              quiet=quiet, seed=seed, fallbacks=fallbacks)
+                              quiet=quiet, seed=seed, fallbacks=fallbacks, cache=rome_cache)
         if res.nll is not None:
             frames.append(metric_rows("nll", res.nll, agents, None))
         if res.nll_joint is not None and res.nll_joint_keys is not None:

@@ -44,6 +44,7 @@ How each number is made (matching the reference benchmarking framework of Schuma
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.special import logsumexp
@@ -308,14 +309,15 @@ def _merge(parts: list[_Part], results: list[DensityResults], metrics: set[str],
 def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], joint_key: np.ndarray | None = None,
                     group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
                     t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
-                    quiet: bool = False, seed: int = 0, fallbacks: RomeFallbacks | None = None) -> DensityResults:
+                    quiet: bool = False, seed: int = 0, fallbacks: RomeFallbacks | None = None,
+                    cache: Path | None = None) -> DensityResults:
     """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
 
     Fits needed by several metrics are made once (the pooled predicted density serves NLL and JSD; a
     singleton joint group reuses the indep NLL). `horizon` (A,) scores each agent over its own first steps
     (see the module docstring). `seed` only drives the subsampling / chunking of large pooled sets and the
     per-task RNG seeds; results do not depend on `workers`. `fallbacks` tallies the fits that needed ROME's
-    PCA fallback.
+    PCA fallback; `cache` keeps finished fits on disk so that an interrupted call resumes (see `run_rome_tasks`).
     """
     _check_options(metrics, max_pooled, seed)
     n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
@@ -328,7 +330,7 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
                    pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed)
 
     results = run_rome_tasks([task for part in parts for task in part.plan.tasks], workers=workers, quiet=quiet,
-                             base_seed=seed, fallbacks=fallbacks)
+                             base_seed=seed, fallbacks=fallbacks, cache=cache)
 
     assembled = [_assemble(part, results[part.offset:part.offset + len(part.plan.tasks)]) for part in parts]
     return _merge(parts, assembled, set(metrics), n_agents)

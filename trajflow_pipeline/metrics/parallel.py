@@ -36,14 +36,18 @@ import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from trajflow_pipeline.errors import DataError, UsageError
+from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
 from trajflow_pipeline.util.progress import console, make_progress
 
 #: ROME's default minimum standard deviation (metres here); the reference framework uses the default too.
 DEFAULT_MIN_STD = 0.1
+#: with a cache and one worker, finished fits are saved every this many (about 20-30 s of fitting)
+CACHE_EVERY = 256
 
 
 @dataclass(frozen=True)
@@ -222,13 +226,15 @@ def _batches(n_tasks: int, workers: int) -> list[range]:
 
 def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, quiet: bool = False,
                    description: str = "ROME density fits", base_seed: int = 0,
-                   fallbacks: RomeFallbacks | None = None) -> list[tuple[np.ndarray, ...]]:
+                   fallbacks: RomeFallbacks | None = None, cache: Path | None = None) -> list[tuple[np.ndarray, ...]]:
     """Run independent ROME tasks and return, in task order, each task's tuple of log-density arrays.
 
     `workers` processes (default: all cores; 1 runs in this process, as does a single task) share the
     tasks; task `i` is seeded with `base_seed + i`, so the numbers are identical for any `workers`.
     A rich progress bar counts finished fits unless `quiet`, and a note says how many fits needed ROME's PCA
     fallback (see the module docstring) when any did; `fallbacks`, when given, adds this call's counts to it.
+    With `cache` (a directory), finished fits are saved as they come and a rerun over the same tasks fits only
+    those not saved yet (see :mod:`trajflow_pipeline.metrics.rome_cache`); the numbers are the same either way.
     """
     n_workers = resolve_workers(workers)
     n_tasks = len(tasks)
@@ -236,15 +242,28 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     retries = np.zeros(n_tasks, dtype=np.int64)
     if n_tasks == 0:
         return []
+    store = RomeCache(cache, tasks, base_seed) if cache is not None else None
+    for index, (values, retried) in (store.load() if store is not None else {}).items():
+        if 0 <= index < n_tasks:
+            results[index], retries[index] = values, retried
+    todo = [index for index, result in enumerate(results) if result is None]
     progress = make_progress(quiet)
     with progress:
-        bar = progress.add_task(description, total=n_tasks)
-        if n_workers == 1 or n_tasks == 1:
-            for index, task in enumerate(tasks):
-                results[index], retries[index] = _fit_and_score(task, base_seed + index)
+        bar = progress.add_task(description, total=n_tasks, completed=n_tasks - len(todo))
+        if n_workers == 1 or len(todo) <= 1:
+            pending: list[Finished] = []
+            for index in todo:
+                finished = _fit_and_score(tasks[index], base_seed + index)
+                results[index], retries[index] = finished
+                pending.append((index, finished))
+                if store is not None and len(pending) >= CACHE_EVERY:
+                    store.save(pending)
+                    pending = []
                 progress.advance(bar)
+            if store is not None:
+                store.save(pending)
         else:
-            batches = _batches(n_tasks, n_workers)
+            batches = [[todo[i] for i in batch] for batch in _batches(len(todo), n_workers)]
             with ProcessPoolExecutor(max_workers=min(n_workers, len(batches)), mp_context=_pool_context()) as pool:
                 futures = [pool.submit(_run_batch, [(i, tasks[i]) for i in batch], base_seed) for batch in batches]
                 try:
@@ -252,6 +271,8 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
                         done = future.result()
                         for index, (values, retried) in done:
                             results[index], retries[index] = values, retried
+                        if store is not None:
+                            store.save(done)
                         progress.advance(bar, len(done))
                 except BaseException:
                     for future in futures:

@@ -18,6 +18,10 @@ Writes, atomically, ``RUN/eval/``:
                               re-ran a failed PCA with added jitter; ``*_ext`` the same for the extended-horizon
                               metrics), and any ``warnings`` (a truncated horizon).
 
+While it runs, finished ROME fits (most of an evaluation's time) are kept in ``RUN/eval-cache/``: an interrupted
+evaluation, run again on the same model and data, fits only what was not finished (the numbers are the same), and
+the folder is removed once ``RUN/eval/`` is written.
+
 Horizons. The metrics compare the predictions with the ground truth over the dataset's ``n_future`` steps.
 ``--steps S`` below it evaluates only the first S steps: allowed (a shorter-horizon evaluation is a legitimate
 question), but printed as a warning and recorded (``horizon.truncated``, ``warnings``), never silent.
@@ -45,6 +49,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +73,8 @@ from ..util.provenance import code_revision, machine_description
 from .runs import RunInfo, open_run
 
 EVAL_DIR = "eval"
+#: finished ROME fits of an evaluation in progress (removed when it completes; see metrics.rome_cache)
+ROME_CACHE_DIR = "eval-cache"
 #: suffix of the metrics scored over each sample's own ground-truth horizon (--extended-horizon)
 EXTENDED_SUFFIX = "_ext"
 #: further suffix of the extended metrics' means over only the samples that need more than n_future steps
@@ -234,17 +241,18 @@ def ground_truth_table(problems: Problems) -> pl.DataFrame:
 
 def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, options: EvalOptions, *,
                   quiet: bool, horizon: Horizon | None = None, fallbacks: RomeFallbacks | None = None,
-                  fallbacks_ext: RomeFallbacks | None = None) -> pl.DataFrame:
+                  fallbacks_ext: RomeFallbacks | None = None, rome_cache: Path | None = None) -> pl.DataFrame:
     """The long metrics table of one run: the standard metrics over `horizon.evaluated` steps (default: the
     ground truth's n_future, or fewer when fewer were predicted) and, for an extended horizon, the same metrics
     with suffix _ext over each problem's own ground-truth horizon. `fallbacks` and `fallbacks_ext` tally the ROME
-    fits that needed ROME's PCA fallback for the standard and the _ext metrics."""
+    fits that needed ROME's PCA fallback for the standard and the _ext metrics; `rome_cache` keeps finished fits
+    on disk so that an interrupted evaluation resumes."""
     assert problems.batch.future is not None
     gt = problems.batch.future.double().numpy()
     steps = min(gt.shape[1], trajectories.shape[2]) if horizon is None else horizon.evaluated
     common = dict(joint_key=problems.joint_id, group_id=problems.group_id, k=options.k, metrics=options.metrics,
                   workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled,
-                  fallbacks=fallbacks)
+                  fallbacks=fallbacks, rome_cache=rome_cache)
     table = compute_metrics(trajectories[:, :, :steps], gt[:, :steps], **common)
     if horizon is not None and horizon.extended:
         extended = _extended_metrics(problems, trajectories, table, dict(common, fallbacks=fallbacks_ext))
@@ -395,7 +403,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     # ROME's PCA fallbacks are printed unless quiet, and recorded either way (experiment workers are quiet).
     fallbacks, fallbacks_ext = RomeFallbacks(), RomeFallbacks()
     metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon, fallbacks=fallbacks,
-                            fallbacks_ext=fallbacks_ext)
+                            fallbacks_ext=fallbacks_ext, rome_cache=run.path / ROME_CACHE_DIR)
     info: dict[str, Any] = {
         "run": run.name, "run_dir": str(run.path.resolve()), "model": run.model, "dataset": problems.dataset,
         "fold": run.fold, "seed": run.seed, "samples": options.samples, "k": options.k,
@@ -419,6 +427,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         ground_truth_table(problems).write_parquet(tmp / "ground_truth.parquet")
         metrics.write_parquet(tmp / "metrics.parquet")
         (tmp / "eval.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+    shutil.rmtree(run.path / ROME_CACHE_DIR, ignore_errors=True)  # its fits are in the evaluation now
     return run.path / EVAL_DIR
 
 
