@@ -161,6 +161,7 @@ def test_evaluating_runs_show_no_patience_and_unreadable_runs_do_not_hide_the_ot
         status = experiment_status(out)
         output = _cli_output(out)
     evaluating, unreadable = status.runs[:2]
+    assert evaluating.fits_saved is None                                        # no evaluation cache yet
     if sys.platform == "linux":
         assert evaluating.state == "evaluating"
         row = next(line for line in output.splitlines() if "trajflow-eth-s0" in line)
@@ -223,3 +224,19 @@ def test_folds_come_from_the_run_directories_when_the_dataset_is_not_here(tmp_pa
     status = experiment_status(out)
     assert [r.name for r in status.runs] == ["trajflow-zara1-s0", "cv-zara1-s0"]
     assert status.note is not None and "was not found from here" in status.note
+
+
+def test_an_evaluation_in_progress_shows_its_saved_fits(tmp_path: Path) -> None:
+    import numpy as np
+
+    from trajflow_pipeline.metrics.parallel import RomeTask
+    from trajflow_pipeline.metrics.rome_cache import RomeCache
+
+    out = write_experiment(tmp_path / "exp")
+    run = write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0, -2.0]))
+    tasks = [RomeTask(fit=np.zeros((3, 2)), queries=(np.zeros((1, 2)),)) for _ in range(5)]
+    cache = RomeCache(run / "eval-cache", tasks, base_seed=0)
+    cache.save([(i, ((np.full(1, -1.0),), 0)) for i in range(3)])
+    status = experiment_status(out)
+    assert (status.runs[0].state, status.runs[0].fits_saved) == ("trained", 3)
+    assert "eval: 3 fits saved" in _cli_output(out)
