@@ -18,6 +18,7 @@ from trajflow_pipeline.stages.experiment import load_experiment, run_experiment
 from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.util.claim import claim
 from trajflow_pipeline.util.provenance import code_revision
 
 TINY = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", "train.flow_max_epochs=2", "train.flow_min_epochs=1",
@@ -88,7 +89,12 @@ def test_an_interrupted_evaluation_resumes_its_rome_fits(tiny_run: Path, tmp_pat
         evaluate(run, options=FAST, quiet=True)
     assert not (run / "eval").exists() and list((run / "eval-cache").glob("*/part-*.npz"))
     monkeypatch.setattr(parallel, "_fit_and_score", real_fit)
-    resumed = pl.read_parquet(evaluate(run, options=FAST, quiet=True) / "metrics.parquet")
+    with claim(run / ".eval.lock"):  # another process evaluating the run: refused, the cache left alone
+        with pytest.raises(UsageError, match="another process is evaluating this run"):
+            evaluate(run, options=FAST, quiet=True)
+    resumed_dir = evaluate(run, options=FAST, quiet=True)
+    resumed = pl.read_parquet(resumed_dir / "metrics.parquet")
+    assert json.loads((resumed_dir / "eval.json").read_text())["rome_fits_resumed"] == 1
     assert not (run / "eval-cache").exists()
     fresh = pl.read_parquet(evaluate(tiny_run, options=FAST, quiet=True) / "metrics.parquet")
     assert resumed.drop("run").equals(fresh.drop("run"))

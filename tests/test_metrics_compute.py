@@ -7,7 +7,7 @@ import polars as pl
 import pytest
 
 from trajflow_pipeline.errors import UsageError
-from trajflow_pipeline.metrics import (METRIC_NAMES, RomeFallbacks, RomeTask, compute_metrics, fit_and_score,
+from trajflow_pipeline.metrics import (METRIC_NAMES, RomeTally, RomeTask, compute_metrics, fit_and_score,
                                        min_ade, nll_indep, run_rome_tasks)
 
 
@@ -88,13 +88,13 @@ def test_rome_pca_fallback_is_counted_not_printed(capsys: pytest.CaptureFixture)
 
     pred, gt, _, _ = _case(seed=2, n_samples=20)
     tasks = [RomeTask(fit=pred[a].reshape(20, -1), queries=(gt[a].reshape(1, -1),)) for a in range(3)]
-    tally = RomeFallbacks(fits=4, fallback_fits=1, retries=1)  # from an earlier call
+    tally = RomeTally(fits=4, fallback_fits=1, retries=1)  # from an earlier call
     results = run_rome_tasks(tasks, workers=1, fallbacks=tally)
     captured = capsys.readouterr()
     assert "PCA failed" not in captured.out
     assert "1 of 3 ROME fits re-ran a failed PCA" in captured.err and "2 retries" in captured.err
-    assert tally == RomeFallbacks(fits=7, fallback_fits=2, retries=3)
-    assert tally.note().startswith("2 of 7 ROME fits re-ran a failed PCA") and RomeFallbacks().note() == ""
+    assert tally == RomeTally(fits=7, fallback_fits=2, retries=3)
+    assert tally.note().startswith("2 of 7 ROME fits re-ran a failed PCA") and RomeTally().note() == ""
     assert all(np.isfinite(r[0]).all() for r in results)
     assert not hasattr(rome_module, "print")  # the module's own print is restored afterwards
 
@@ -125,7 +125,7 @@ def test_an_interrupted_rome_run_resumes_from_its_cache(tmp_path, monkeypatch: p
     calls.clear()
     monkeypatch.setattr(parallel, "_fit_and_score", fit_until(100))
     resumed = run_rome_tasks(tasks, workers=1, quiet=True, base_seed=5, cache=tmp_path)
-    assert len(calls) == len(tasks) - 4                      # the fifth fit was never saved: parts hold 2 + 2
+    assert len(calls) == len(tasks) - 5                      # parts of 2 + 2, and the fifth saved on the way out
     for got, expected in zip(resumed, reference):
         for a, b in zip(got, expected):
             np.testing.assert_array_equal(a, b)
@@ -133,5 +133,56 @@ def test_an_interrupted_rome_run_resumes_from_its_cache(tmp_path, monkeypatch: p
     run_rome_tasks(tasks, workers=1, quiet=True, base_seed=6, cache=tmp_path)
     assert len(calls) == len(tasks)                          # other seeds: other results, nothing reused
     monkeypatch.setattr(parallel, "_fit_and_score", fit_until(0))
-    again = run_rome_tasks(tasks, workers=2, quiet=True, base_seed=5, cache=tmp_path)  # everything saved: no fit
+    tally = RomeTally()
+    again = run_rome_tasks(tasks, workers=1, quiet=True, base_seed=5, cache=tmp_path, fallbacks=tally)
+    assert tally.resumed == len(tasks)                       # everything saved: no fit at all
     np.testing.assert_array_equal(again[3][1], reference[3][1])
+
+
+def _same(results, reference) -> bool:
+    return all(np.array_equal(a, b) for got, expected in zip(results, reference, strict=True)
+               for a, b in zip(got, expected, strict=True))
+
+
+def test_a_cache_serves_only_the_very_same_tasks(tmp_path) -> None:
+    """Saved fits are never reused for another task list: a changed point, query, minimum std or task count, or
+    a damaged part, all give what an uncached run gives."""
+    from dataclasses import replace
+
+    pred, gt, _, _ = _case(seed=5, n_samples=20)
+    tasks = [RomeTask(fit=pred[a].reshape(20, -1), queries=(gt[a].reshape(1, -1),)) for a in range(pred.shape[0])]
+    run_rome_tasks(tasks, workers=1, quiet=True, cache=tmp_path)          # every fit of `tasks` saved
+    moved_point = tasks[2].fit.copy()
+    moved_point[0, 0] += 0.5
+    variants = {
+        "point": [*tasks[:2], replace(tasks[2], fit=moved_point), *tasks[3:]],
+        "query": [*tasks[:2], replace(tasks[2], queries=(tasks[2].queries[0] + 0.5,)), *tasks[3:]],
+        "min_std": [*tasks[:2], replace(tasks[2], min_std=0.3), *tasks[3:]],
+        "count": tasks[:4],
+    }
+    for name, variant in variants.items():
+        uncached = run_rome_tasks(variant, workers=1, quiet=True)
+        assert _same(run_rome_tasks(variant, workers=1, quiet=True, cache=tmp_path), uncached), name
+    reference = run_rome_tasks(tasks, workers=1, quiet=True)
+    (tmp_path / "damaged").mkdir()
+    for directory in tmp_path.iterdir():                                  # an empty part, as a crash can leave
+        (directory / "part-empty.npz").write_bytes(b"")
+    tally = RomeTally()
+    assert _same(run_rome_tasks(tasks, workers=1, quiet=True, cache=tmp_path, fallbacks=tally), reference)
+    assert tally.resumed == len(tasks)
+
+
+def test_parallel_fits_are_saved_per_batch_and_resume_with_any_worker_count(tmp_path) -> None:
+    pred, gt, _, _ = _case(seed=6, n_samples=20)
+    tasks = [RomeTask(fit=pred[a].reshape(20, -1), queries=(gt[a].reshape(1, -1),)) for a in range(pred.shape[0])]
+    reference = run_rome_tasks(tasks, workers=1, quiet=True, base_seed=2)
+    assert _same(run_rome_tasks(tasks, workers=2, quiet=True, base_seed=2, cache=tmp_path), reference)
+    parts = sorted(tmp_path.glob("*/part-*.npz"))
+    assert len(parts) > 1                                                  # one per finished batch
+    for part in parts[::2]:
+        part.unlink()
+    for workers in (2, 1):
+        tally = RomeTally()
+        assert _same(run_rome_tasks(tasks, workers=workers, quiet=True, base_seed=2, cache=tmp_path,
+                                    fallbacks=tally), reference)
+        assert 0 < tally.resumed <= len(tasks)

@@ -235,8 +235,9 @@ def test_an_evaluation_in_progress_shows_its_saved_fits(tmp_path: Path) -> None:
     out = write_experiment(tmp_path / "exp")
     run = write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0, -2.0]))
     tasks = [RomeTask(fit=np.zeros((3, 2)), queries=(np.zeros((1, 2)),)) for _ in range(5)]
-    cache = RomeCache(run / "eval-cache", tasks, base_seed=0)
+    cache = RomeCache(run / "eval-cache", tasks, base_seed=0, patched=True)
     cache.save([(i, ((np.full(1, -1.0),), 0)) for i in range(3)])
+    cache.save([(1, ((np.full(1, -1.0),), 0))])                                # saved twice counts once
     status = experiment_status(out)
-    assert (status.runs[0].state, status.runs[0].fits_saved) == ("trained", 3)
-    assert "eval: 3 fits saved" in _cli_output(out)
+    assert (status.runs[0].state, status.runs[0].fits_saved) == ("trained", (3, 5))
+    assert "eval: 3/5 fits saved" in _cli_output(out)

@@ -72,7 +72,7 @@ def _progress_cells(run: RunStatus) -> list[str]:
     and the time the stage may still take (while its training goes on)."""
     progress: StageProgress | None = run.progress
     if run.fits_saved is not None:  # an evaluation in progress: its saved fits say how far it is
-        return [f"eval: {run.fits_saved:,} fits saved", "", "", ""]
+        return [f"eval: {run.fits_saved[0]:,}/{run.fits_saved[1]:,} fits saved", "", "", ""]
     if progress is None:
         return [""] * 4
     epoch = f"{progress.stage}: {progress.epoch}" + (f"/{progress.max_epochs}" if progress.max_epochs else "")

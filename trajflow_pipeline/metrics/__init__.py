@@ -13,13 +13,13 @@ from trajflow_pipeline.metrics.density import (DensityResults, density_metrics, 
 from trajflow_pipeline.metrics.displacement import (DEFAULT_K, ade_fde_per_draw, min_ade, min_ade_joint, min_fde,
                                                     min_fde_joint)
 from trajflow_pipeline.metrics.divergence import jsd_from_log_densities
-from trajflow_pipeline.metrics.parallel import RomeFallbacks, RomeTask, fit_and_score, run_rome_tasks
+from trajflow_pipeline.metrics.parallel import RomeTally, RomeTask, fit_and_score, run_rome_tasks
 
 __all__ = [
     "DEFAULT_K",
     "METRIC_NAMES",
     "DensityResults",
-    "RomeFallbacks",
+    "RomeTally",
     "RomeTask",
     "ade_fde_per_draw",
     "check_metric_names",

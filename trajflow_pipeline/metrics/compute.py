@@ -28,7 +28,7 @@ from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.metrics.density import density_metrics
 from trajflow_pipeline.metrics.displacement import DEFAULT_K, ade_fde_per_draw, joint_horizon, joint_min
 from trajflow_pipeline.metrics.inputs import Groups, check_trajectories, evaluated_horizon, group_agents
-from trajflow_pipeline.metrics.parallel import RomeFallbacks
+from trajflow_pipeline.metrics.parallel import RomeTally
 
 #: Every metric `compute_metrics` knows, in table order.
 METRIC_NAMES: tuple[str, ...] = ("min_ade", "min_fde", "min_ade_joint", "min_fde_joint", "nll", "nll_joint", "jsd")
@@ -76,7 +76,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
                     group_id: np.ndarray | None = None, k: int = DEFAULT_K, t_eval: int | None = None,
                     horizon: np.ndarray | None = None, metrics: Sequence[str] = METRIC_NAMES,
                     pool_groups: bool = True, max_pooled: int | None = None, workers: int | None = None,
-                    quiet: bool = False, seed: int = 0, fallbacks: RomeFallbacks | None = None,
+                    quiet: bool = False, seed: int = 0, fallbacks: RomeTally | None = None,
                     rome_cache: Path | None = None) -> pl.DataFrame:
     """Evaluate `pred` (A, S, T, 2) against `gt` (A, T, 2) (metres) and return the long table described above.
 

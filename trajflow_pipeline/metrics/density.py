@@ -53,7 +53,7 @@ from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics.divergence import jsd_from_log_densities
 from trajflow_pipeline.metrics.inputs import (Groups, check_trajectories, evaluated_horizon, flatten_futures,
                                               group_agents, group_minimum)
-from trajflow_pipeline.metrics.parallel import RomeFallbacks, RomeTask, run_rome_tasks
+from trajflow_pipeline.metrics.parallel import RomeTally, RomeTask, run_rome_tasks
 
 #: Smallest chunk the reference uses for a pooled predicted density (points per ROME fit).
 REFERENCE_MIN_CHUNK = 2500
@@ -309,7 +309,7 @@ def _merge(parts: list[_Part], results: list[DensityResults], metrics: set[str],
 def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], joint_key: np.ndarray | None = None,
                     group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
                     t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
-                    quiet: bool = False, seed: int = 0, fallbacks: RomeFallbacks | None = None,
+                    quiet: bool = False, seed: int = 0, fallbacks: RomeTally | None = None,
                     cache: Path | None = None) -> DensityResults:
     """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
 

@@ -15,7 +15,7 @@ in which order it ran: serial and parallel runs give bit-identical arrays.
 ROME prints "PCA failed, was done again with different random start." to stdout when a cluster's covariance is
 singular and it retries with added jitter (its own fallback; the fit goes on). Those lines would land in the
 middle of progress bars and tables, so they are counted instead, and :func:`run_rome_tasks` says once how many
-fits needed the fallback (and adds them to a :class:`RomeFallbacks` tally when given one, which is how
+fits needed the fallback (and adds them to a :class:`RomeTally` tally when given one, which is how
 `trajflow eval` records them in eval.json even when quiet).
 
 Workers are never forked from the calling process: the eval stage has used torch's thread pools before the
@@ -64,13 +64,15 @@ class RomeTask:
 
 
 @dataclass
-class RomeFallbacks:
-    """A running tally, over any number of :func:`run_rome_tasks` calls, of the ROME fits that re-ran a failed PCA
-    with added jitter (ROME's own fallback for a singular cluster; the fit goes on, slightly perturbed)."""
+class RomeTally:
+    """A running tally, over any number of :func:`run_rome_tasks` calls, of the ROME fits: how many there were, how
+    many re-ran a failed PCA with added jitter (ROME's own fallback for a singular cluster; the fit goes on,
+    slightly perturbed) and with how many retries, and how many were resumed from a cache rather than made."""
 
     fits: int = 0
     fallback_fits: int = 0
     retries: int = 0
+    resumed: int = 0
 
     def note(self) -> str:
         """One sentence for a log or a warnings list ('' when no fit fell back)."""
@@ -217,6 +219,21 @@ def _pool_context() -> multiprocessing.context.BaseContext:
     return multiprocessing.get_context("spawn")
 
 
+def _saved(store: RomeCache | None, finished: list[Finished], quiet: bool) -> RomeCache | None:
+    """Save finished fits in `store`; the cache only saves time, so when it cannot be written the fits go on without
+    it (said once) rather than the evaluation ending. Returns the store to use from now on."""
+    if store is None or not finished:
+        return store
+    try:
+        store.save(finished)
+    except OSError as error:
+        if not quiet:
+            console.print(f"[yellow]warning:[/] cannot save ROME fits in {store.directory} ({error}); going on "
+                          "without a cache, so an interruption would start the fits again")
+        return None
+    return store
+
+
 def _batches(n_tasks: int, workers: int) -> list[range]:
     """Split task indices into contiguous batches: ~8 per worker amortises IPC and keeps the bar moving."""
     n_batches = min(n_tasks, workers * 8)
@@ -226,7 +243,7 @@ def _batches(n_tasks: int, workers: int) -> list[range]:
 
 def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, quiet: bool = False,
                    description: str = "ROME density fits", base_seed: int = 0,
-                   fallbacks: RomeFallbacks | None = None, cache: Path | None = None) -> list[tuple[np.ndarray, ...]]:
+                   fallbacks: RomeTally | None = None, cache: Path | None = None) -> list[tuple[np.ndarray, ...]]:
     """Run independent ROME tasks and return, in task order, each task's tuple of log-density arrays.
 
     `workers` processes (default: all cores; 1 runs in this process, as does a single task) share the
@@ -242,50 +259,59 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     retries = np.zeros(n_tasks, dtype=np.int64)
     if n_tasks == 0:
         return []
-    store = RomeCache(cache, tasks, base_seed) if cache is not None else None
+    store = (RomeCache(cache, tasks, base_seed, patched=_romepy_version() in _AUDITED_ROMEPY)
+             if cache is not None else None)
     for index, (values, retried) in (store.load() if store is not None else {}).items():
-        if 0 <= index < n_tasks:
-            results[index], retries[index] = values, retried
+        results[index], retries[index] = values, retried
     todo = [index for index, result in enumerate(results) if result is None]
+    resumed = n_tasks - len(todo)
+    if resumed and not quiet:
+        console.print(f"[dim]{description}: {resumed} of {n_tasks} fits resumed from {store.directory}[/]")
     progress = make_progress(quiet)
     with progress:
-        bar = progress.add_task(description, total=n_tasks, completed=n_tasks - len(todo))
+        bar = progress.add_task(description, total=n_tasks, completed=resumed)
         if n_workers == 1 or len(todo) <= 1:
             pending: list[Finished] = []
-            for index in todo:
-                finished = _fit_and_score(tasks[index], base_seed + index)
-                results[index], retries[index] = finished
-                pending.append((index, finished))
-                if store is not None and len(pending) >= CACHE_EVERY:
-                    store.save(pending)
-                    pending = []
-                progress.advance(bar)
-            if store is not None:
-                store.save(pending)
+            try:
+                for index in todo:
+                    finished = _fit_and_score(tasks[index], base_seed + index)
+                    results[index], retries[index] = finished
+                    pending.append((index, finished))
+                    if len(pending) >= CACHE_EVERY:
+                        store, pending = _saved(store, pending, quiet), []
+                    progress.advance(bar)
+            finally:  # what was fitted before an interruption is kept too
+                store = _saved(store, pending, quiet)
         else:
             batches = [[todo[i] for i in batch] for batch in _batches(len(todo), n_workers)]
             with ProcessPoolExecutor(max_workers=min(n_workers, len(batches)), mp_context=_pool_context()) as pool:
                 futures = [pool.submit(_run_batch, [(i, tasks[i]) for i in batch], base_seed) for batch in batches]
+                unsaved = set(futures)
                 try:
                     for future in as_completed(futures):
                         done = future.result()
                         for index, (values, retried) in done:
                             results[index], retries[index] = values, retried
-                        if store is not None:
-                            store.save(done)
+                        store = _saved(store, done, quiet)
+                        unsaved.discard(future)
                         progress.advance(bar, len(done))
                 except BaseException:
                     for future in futures:
                         future.cancel()
+                    for future in unsaved:  # batches that finished before the interruption are kept too
+                        if future.done() and not future.cancelled() and future.exception() is None:
+                            store = _saved(store, future.result(), quiet)
                     raise
     missing = [i for i, r in enumerate(results) if r is None]
     if missing:  # cannot happen unless the pool misbehaves; never hand back a silently short list
         raise RuntimeError(f"ROME tasks {missing[:10]} produced no result")
-    this_call = RomeFallbacks(fits=n_tasks, fallback_fits=int((retries > 0).sum()), retries=int(retries.sum()))
+    this_call = RomeTally(fits=n_tasks, fallback_fits=int((retries > 0).sum()), retries=int(retries.sum()),
+                          resumed=resumed)
     if fallbacks is not None:
         fallbacks.fits += this_call.fits
         fallbacks.fallback_fits += this_call.fallback_fits
         fallbacks.retries += this_call.retries
+        fallbacks.resumed += this_call.resumed
     if this_call.fallback_fits and not quiet:
         console.print(f"[dim]note: {this_call.note()}[/]")
     return results  # type: ignore[return-value]

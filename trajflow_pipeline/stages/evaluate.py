@@ -19,8 +19,9 @@ Writes, atomically, ``RUN/eval/``:
                               metrics), and any ``warnings`` (a truncated horizon).
 
 While it runs, finished ROME fits (most of an evaluation's time) are kept in ``RUN/eval-cache/``: an interrupted
-evaluation, run again on the same model and data, fits only what was not finished (the numbers are the same), and
-the folder is removed once ``RUN/eval/`` is written.
+evaluation, run again on the same model, data and setup, fits only what was not finished (the numbers are the
+same; ``rome_fits_resumed`` in eval.json counts the fits it found, and ``seconds`` is the last attempt's), and the
+folder is removed once ``RUN/eval/`` is written. A run is evaluated by one process at a time (``RUN/.eval.lock``).
 
 Horizons. The metrics compare the predictions with the ground truth over the dataset's ``n_future`` steps.
 ``--steps S`` below it evaluates only the first S steps: allowed (a shorter-horizon evaluation is a legitimate
@@ -62,12 +63,13 @@ import torch
 from .. import __version__
 from ..data import Problems, build_problems, select_samples
 from ..errors import TrajflowError, UsageError
-from ..metrics import METRIC_NAMES, RomeFallbacks, check_metric_names, compute_metrics, jsd_groups
+from ..metrics import METRIC_NAMES, RomeTally, check_metric_names, compute_metrics, jsd_groups
 from ..metrics.compute import SCHEMA, metric_rows
 from ..metrics.inputs import group_agents, group_minimum
 from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import open_dataset
 from ..util.atomic import atomic_directory
+from ..util.claim import claim
 from ..util.progress import console, make_progress
 from ..util.provenance import code_revision, machine_description
 from .runs import RunInfo, open_run
@@ -75,6 +77,8 @@ from .runs import RunInfo, open_run
 EVAL_DIR = "eval"
 #: finished ROME fits of an evaluation in progress (removed when it completes; see metrics.rome_cache)
 ROME_CACHE_DIR = "eval-cache"
+#: the claim an evaluation holds on its run (util.claim), so that two never share the cache
+EVAL_LOCK = ".eval.lock"
 #: suffix of the metrics scored over each sample's own ground-truth horizon (--extended-horizon)
 EXTENDED_SUFFIX = "_ext"
 #: further suffix of the extended metrics' means over only the samples that need more than n_future steps
@@ -240,8 +244,8 @@ def ground_truth_table(problems: Problems) -> pl.DataFrame:
 
 
 def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, options: EvalOptions, *,
-                  quiet: bool, horizon: Horizon | None = None, fallbacks: RomeFallbacks | None = None,
-                  fallbacks_ext: RomeFallbacks | None = None, rome_cache: Path | None = None) -> pl.DataFrame:
+                  quiet: bool, horizon: Horizon | None = None, fallbacks: RomeTally | None = None,
+                  fallbacks_ext: RomeTally | None = None, rome_cache: Path | None = None) -> pl.DataFrame:
     """The long metrics table of one run: the standard metrics over `horizon.evaluated` steps (default: the
     ground truth's n_future, or fewer when fewer were predicted) and, for an extended horizon, the same metrics
     with suffix _ext over each problem's own ground-truth horizon. `fallbacks` and `fallbacks_ext` tally the ROME
@@ -384,6 +388,17 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     started = time.perf_counter()
     revision = code_revision()  # read now: a commit or checkout during evaluation must not be credited with it
     run = open_run(run_dir)
+    with claim(run.path / EVAL_LOCK) as mine:  # one evaluation of a run at a time: they share RUN/eval-cache
+        if not mine:
+            raise UsageError(f"{run.path}: another process is evaluating this run (it holds {EVAL_LOCK}); "
+                             "wait for it to finish")
+        return _evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet,
+                         started=started, revision=revision)
+
+
+def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, device: str, force: bool,
+              quiet: bool, started: float, revision: str | None) -> Path:
+    """The evaluation of an opened run, under its evaluation claim (see `evaluate`)."""
     ds = open_dataset(data or run.data_path)
     _check_fingerprint(run, ds.fingerprint(), force)
     try:
@@ -401,7 +416,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
     trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet,
                                              steps=horizon.predicted)
     # ROME's PCA fallbacks are printed unless quiet, and recorded either way (experiment workers are quiet).
-    fallbacks, fallbacks_ext = RomeFallbacks(), RomeFallbacks()
+    fallbacks, fallbacks_ext = RomeTally(), RomeTally()
     metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon, fallbacks=fallbacks,
                             fallbacks_ext=fallbacks_ext, rome_cache=run.path / ROME_CACHE_DIR)
     info: dict[str, Any] = {
@@ -418,6 +433,7 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
         "model_digest": run.weights_digest,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
         "rome_fits": fallbacks.fits, "rome_fallback_fits": fallbacks.fallback_fits,
+        "rome_fits_resumed": fallbacks.resumed + fallbacks_ext.resumed,
         **({"rome_fits_ext": fallbacks_ext.fits, "rome_fallback_fits_ext": fallbacks_ext.fallback_fits}
            if horizon.extended else {}),
         **_group_counts(problems, horizon.evaluated, options.metrics),

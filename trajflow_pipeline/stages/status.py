@@ -23,12 +23,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import polars as pl
 
 from ..data import list_folds
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.config import RunConfig, load_config
+from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
 from .evaluate import EVAL_DIR, ROME_CACHE_DIR
 from .experiment import ExperimentConfig, load_experiment, run_done, run_evaluated, run_name, run_overrides
@@ -107,8 +107,8 @@ class RunStatus:
     metrics: dict[str, float]
     #: why the run's files could not be read (state "unreadable")
     problem: str | None = None
-    #: ROME fits an interrupted or running evaluation has saved so far (None: no evaluation in progress)
-    fits_saved: int | None = None
+    #: (saved, all) ROME fits of an evaluation in progress or interrupted (None: none)
+    fits_saved: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -328,22 +328,8 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig, model: str, fold: str 
         train_seconds=float(log.get_column("seconds").sum()) if log is not None and log.height else 0.0,
         eval_seconds=float(eval_seconds) if isinstance(eval_seconds, (int, float)) else None,
         metrics=_aggregates(run_dir) if state == "done" else {},
-        fits_saved=_fits_saved(run_dir / ROME_CACHE_DIR) if state in ("trained", "evaluating", "continuing") else None,
+        fits_saved=saved_fits(run_dir / ROME_CACHE_DIR) if state in ("trained", "evaluating") else None,
     )
-
-
-def _fits_saved(cache: Path) -> int | None:
-    """How many ROME fits an evaluation in progress has saved (see metrics.rome_cache); None without a cache."""
-    if not cache.is_dir():
-        return None
-    saved = 0
-    for part in cache.glob("*/part-*.npz"):
-        try:
-            with np.load(part) as arrays:
-                saved += len(arrays["indices"])
-        except (OSError, ValueError, KeyError):
-            continue
-    return saved
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
