@@ -384,3 +384,28 @@ def test_settings_that_differ_from_the_paper_are_named(tmp_path: Path) -> None:
     plain = [write_run(tmp_path / "plain", model="trajflow", dataset="eth_ucy", fold="eth", seed=0)]
     assert "differ from the paper" not in (report(plain, tmp_path / "rep2", quiet=True, figures=False)
                                            / "report.md").read_text()
+
+
+def test_nll_medians_beside_the_means(tmp_path: Path) -> None:
+    """Each run's median over its per-agent NLL rows (and per-group joint rows), averaged over runs per model and
+    per fold, in a table of their own without the paper's row; the means above are untouched."""
+    runs = [write_run(tmp_path / "runs", model="trajflow", dataset="eth_ucy", fold=f, seed=0, samples=5)
+            for f in ("eth", "hotel")]
+    for run, nll in zip(runs, ([1.0, 2.0, 3.0, 4.0, 900.0], [-5.0, -4.0, -3.0, 50.0, 60.0])):
+        path = run / "eval" / "metrics.parquet"
+        table = pl.read_parquet(path)
+        values = table["value"].to_numpy().copy()
+        values[((table["metric"] == "nll") & ~table["aggregate"]).to_numpy()] = nll
+        table.with_columns(value=pl.Series(values)).write_parquet(path)
+    out = report(runs, tmp_path / "rep", quiet=True, figures=False)
+    markdown = (out / "report.md").read_text()
+    medians = markdown[markdown.index("### NLL medians"):markdown.index("### Compute")]
+    row = _table_row(medians, "TrajFlow")
+    assert row[1] == "2" and row[2] == "**0.00 ± 3.00**"  # medians 3 and -3
+    assert "TrajFlow (paper)" not in medians and "per run the median over agents" in medians
+    assert _table_row(medians[medians.index("#### NLL indep median, per fold"):], "eth")[1] == "**3.00**"
+    assert _table_row(medians[medians.index("#### NLL indep median, per fold"):], "hotel")[1] == "**-3.00**"
+    assert "#### NLL joint median, per fold" in medians and "#### minADE median" not in medians
+    assert _table_row(_section(markdown, "ETH/UCY"), "TrajFlow")[6] == "**-19.99 ± 0.01**"  # the aggregates
+    medians_json = json.loads((out / "report.json").read_text())["nll_medians"]
+    assert {(r["metric"], r["mean"]) for r in medians_json["summary"]} >= {("nll", 0.0)}

@@ -9,7 +9,7 @@ lists its finished runs relative to it. Every problem becomes one line naming th
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,6 +17,7 @@ from typing import Any
 import polars as pl
 
 from ..errors import DataError, TrajflowError
+from .paper import UNBOUNDED_PREFIX
 
 EVAL_DIR = "eval"
 EXPERIMENT_FILE = "experiment.json"
@@ -226,11 +227,22 @@ def run_metrics(run: Run) -> pl.DataFrame:
     return table
 
 
-def metrics_frame(runs: list[Run]) -> pl.DataFrame:
-    """One row per (run, metric) aggregate value with the run's identity: the input of every table."""
+def run_medians(run: Run) -> pl.DataFrame:
+    """The median of the run's per-agent (joint: per-group) rows of each unbounded metric (NLL and its variants),
+    as (metric, value): the typical problem, which a few far-off ground truths cannot move as they move the mean."""
+    path = run.eval_dir / "metrics.parquet"
+    scan = (scan_table(path, METRICS_COLUMNS, what="metrics table")
+            .filter(~pl.col("aggregate") & pl.col("metric").str.starts_with(UNBOUNDED_PREFIX))
+            .group_by("metric").agg(pl.col("value").median()).sort("metric"))
+    return collect(scan, path, "metrics table")
+
+
+def metrics_frame(runs: list[Run], read: Callable[[Run], pl.DataFrame] = run_metrics) -> pl.DataFrame:
+    """One row per (run, metric) value with the run's identity: the input of every table. `read` gives a run's
+    (metric, value) rows: its aggregates (default) or e.g. :func:`run_medians`."""
     schema = {"run_index": pl.Int64, "run": pl.String, "model": pl.String, "dataset": pl.String,
               "fold": pl.String, "seed": pl.Int64, "metric": pl.String, "value": pl.Float64}
-    frames = [run_metrics(run).with_columns(
+    frames = [read(run).with_columns(
         run_index=pl.lit(index, pl.Int64), run=pl.lit(run.name), model=pl.lit(run.model),
         dataset=pl.lit(run.dataset), fold=pl.lit(run.fold, pl.String), seed=pl.lit(run.seed, pl.Int64),
     ).select(list(schema)) for index, run in enumerate(runs)]

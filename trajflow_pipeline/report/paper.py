@@ -27,6 +27,10 @@ METRICS: tuple[MetricSpec, ...] = (
 
 METRIC_BY_NAME: dict[str, MetricSpec] = {spec.name: spec for spec in METRICS}
 
+#: Metrics named with this prefix (NLL indep / joint and their extended-horizon variants) are unbounded above: ROME's
+#: log-densities are finite but can be very negative far from every draw, so a few problems can dominate their mean.
+UNBOUNDED_PREFIX = "nll"
+
 #: The paper's TrajFlow means over seeds / folds (SPEC section 6); a missing metric was not reported.
 PAPER_TRAJFLOW: dict[str, dict[str, float]] = {
     "synthetic_bimodal": {"min_ade": 0.12, "min_fde": 0.20, "nll": -39.22, "jsd": 0.683},

@@ -70,12 +70,17 @@ def metric_header(spec: MetricSpec, k: int | None) -> str:
     return spec.label
 
 
-def summary_table(stats: pl.DataFrame, dataset: str, k: int | None = None) -> Table:
+def summary_table(stats: pl.DataFrame, dataset: str, k: int | None = None, *, of: str = "",
+                  paper_row: bool = True) -> Table:
     """One row per model (mean ± std over runs), the best mean per column in bold, then the paper's TrajFlow row.
 
-    `stats` is :func:`summary_stats` restricted to `dataset`.
+    `stats` is :func:`summary_stats` restricted to `dataset`. With `paper_row` (the aggregates) every standard
+    metric gets a column, a dash where nobody evaluated it; without (other statistics, e.g. medians, which the
+    paper's numbers cannot be compared with) only the metrics in `stats` do. `of` says what each run's value is,
+    for the caption.
     """
-    columns = metric_columns(stats.get_column("metric").to_list())
+    present = stats.get_column("metric").to_list()
+    columns = [spec for spec in metric_columns(present) if paper_row or spec.name in present]
     models = model_order(stats.get_column("model").to_list())
     mean, std, runs = _pivot(stats, "model", "mean"), _pivot(stats, "model", "std"), _pivot(stats, "model", "runs")
     run_count = dict(stats.group_by("model").agg(pl.col("runs").max()).iter_rows())
@@ -88,21 +93,22 @@ def summary_table(stats: pl.DataFrame, dataset: str, k: int | None = None) -> Ta
            for spec in columns))
         for model in models
     ]
-    paper = PAPER_TRAJFLOW.get(dataset)
+    paper = PAPER_TRAJFLOW.get(dataset) if paper_row else None
     if paper is not None:
         rows.append((Cell(PAPER_LABEL), Cell("paper"),
                      *(Cell(format_value(paper.get(spec.name), spec.decimals)) for spec in columns)))
     return Table(header=("model", "runs", *(metric_header(spec, k) for spec in columns)), rows=tuple(rows),
                  numeric=(False, True, *(True for _ in columns)),
-                 caption="mean ± std over folds and seeds (std over runs); bold: best of our models per column "
+                 caption=f"{of}mean ± std over folds and seeds (std over runs); bold: best of our models per column "
                          "(lower is better)" + ("; last row: the paper's TrajFlow" if paper else ""))
 
 
-def fold_tables(stats: pl.DataFrame) -> list[tuple[MetricSpec, Table]]:
+def fold_tables(stats: pl.DataFrame, of: str = "") -> list[tuple[MetricSpec, Table]]:
     """Per metric, a fold × model table of means over seeds, the best per fold in bold.
 
     `stats` is :func:`fold_stats` restricted to one dataset; metrics nobody evaluated get no table. When cells
-    average different numbers of seeds, each cell shows its count in parentheses.
+    average different numbers of seeds, each cell shows its count in parentheses. `of` says what each run's value
+    is, for the captions.
     """
     tables = []
     models = model_order(stats.get_column("model").to_list())
@@ -124,7 +130,7 @@ def fold_tables(stats: pl.DataFrame) -> list[tuple[MetricSpec, Table]]:
         count = "" if uneven else f" ({next(iter(seeds.values()))} per cell)"
         tables.append((spec, Table(header=("fold", *(model_label(m) for m in models)), rows=tuple(rows),
                                    numeric=(False, *(True for _ in models)),
-                                   caption=f"{spec.label}: mean over seeds{count}"
+                                   caption=f"{spec.label}: {of}mean over seeds{count}"
                                            + ("; seeds per cell in parentheses" if uneven else "")
                                            + "; bold: best per fold")))
     return tables

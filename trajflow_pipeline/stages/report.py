@@ -10,7 +10,8 @@ REPORT is written atomically (a complete new report replaces an older one, or no
 Per dataset (never one mixed table): one row per model, mean ± std over folds and seeds of each run's aggregate
 metric values, the best in bold, the paper's TrajFlow row and plain "met / not met" target lines, with a note
 naming the settings in which the runs differ from the paper's (a reduced budget, a change of ours); per-fold
-breakdowns; then the figures. A provenance section lists, for every run, what produced its numbers.
+breakdowns; the medians of the unbounded NLL metrics beside their means; then the figures. A provenance section
+lists, for every run, what produced its numbers.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from rich.progress import Progress
 from .. import __version__
 from ..errors import TrajflowError, UsageError
 from ..model.config import RunConfig
-from ..report.collect import (Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs,
+from ..report.collect import (Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs, run_medians,
                               scan_ground_truth, scan_predictions, training_seconds)
 from ..report.curves import min_ade_curve
 from ..report.document import Block, Bullets, Cell, Code, Figure, Heading, Paragraph, Table
@@ -262,9 +263,31 @@ def _figures(dataset: str, runs: list[Run], max_examples: int, progress: Progres
     return blocks
 
 
-def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_fold: pl.DataFrame, *,
-                     figures: bool, max_examples: int, progress: Progress) -> list[Block]:
-    """Tables, targets and figures of one dataset."""
+MEDIANS_OF = "per run the median over agents (joint: over groups), then "
+MEDIANS_WHY = (
+    "The NLL columns above are means over agents (joint: over groups), as the paper reports them. ROME's "
+    "log-densities are finite but unbounded, so a few ground truths far from every draw can move a mean by a lot "
+    "(a single value of +2,000 nats among 1,000 moves their mean by about 2). The medians of each run's per-agent "
+    "(per-group) values below show the typical problem; the paper gives no medians to compare with.")
+
+
+def _median_blocks(dataset: str, runs: list[Run], medians: pl.DataFrame, median_folds: pl.DataFrame) -> list[Block]:
+    """The NLL medians of one dataset: a model table and, for folded data, per-fold tables (nothing without NLL)."""
+    stats = medians.filter(pl.col("dataset") == dataset)
+    if stats.is_empty():
+        return []
+    blocks: list[Block] = [Heading(3, "NLL medians"), Paragraph(MEDIANS_WHY),
+                           summary_table(stats, dataset, of=MEDIANS_OF, paper_row=False)]
+    if any(r.fold is not None for r in runs):
+        for spec, table in fold_tables(median_folds.filter(pl.col("dataset") == dataset), of=MEDIANS_OF):
+            blocks += [Heading(4, f"{spec.label} median, per fold"), table]
+    return blocks
+
+
+def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_fold: pl.DataFrame,
+                     medians: tuple[pl.DataFrame, pl.DataFrame], *, figures: bool, max_examples: int,
+                     progress: Progress) -> list[Block]:
+    """Tables, targets and figures of one dataset; `medians` are the NLL medians' summary and per-fold stats."""
     label = dataset_label(dataset)
     title = label if label == dataset else f"{label} (`{dataset}`)"
     stats = summary.filter(pl.col("dataset") == dataset)
@@ -283,6 +306,7 @@ def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_f
         blocks.append(Heading(3, "Per fold"))
         for spec, table in fold_tables(per_fold.filter(pl.col("dataset") == dataset)):
             blocks += [Heading(4, spec.label), table]
+    blocks += _median_blocks(dataset, runs, *medians)
     blocks += _compute(runs)
     if figures:
         blocks += _figures(dataset, runs, max_examples, progress)
@@ -416,12 +440,14 @@ def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool 
             progress.advance(task)
         metrics = metrics_frame(runs)
         summary, per_fold = summary_stats(metrics), fold_stats(metrics)
+        median_values = metrics_frame(runs, run_medians)
+        medians = summary_stats(median_values), fold_stats(median_values)
         datasets = dataset_order([r.dataset for r in runs])
         blocks = _header(runs, inputs, resolved.experiments, resolved.notes, datasets, generated)
         sections = progress.add_task("building report", total=len(datasets))
         for dataset in datasets:
             blocks += _dataset_section(dataset, [r for r in runs if r.dataset == dataset], summary, per_fold,
-                                       figures=figures, max_examples=max_examples, progress=progress)
+                                       medians, figures=figures, max_examples=max_examples, progress=progress)
             progress.advance(sections)
     blocks += _provenance(runs)
     pictures = [block for block in blocks if isinstance(block, Figure)]
@@ -431,6 +457,7 @@ def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool 
         "runs": [{"path": str(r.path), "run": r.name, "model": r.model, "dataset": r.dataset, "fold": r.fold,
                   "seed": r.seed} for r in runs],
         "summary": summary.rows(named=True), "per_fold": per_fold.rows(named=True),
+        "nll_medians": {"summary": medians[0].rows(named=True), "per_fold": medians[1].rows(named=True)},
         "figures": [figure.path for figure in pictures],
     }
     with atomic_directory(out) as tmp:
