@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.errors import TrajflowError, UsageError
 from trajflow_pipeline.metrics import METRIC_NAMES
+from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.stages.evaluate import EvalOptions, aggregate_metrics, evaluate
 from trajflow_pipeline.stages.experiment import load_experiment, run_experiment
 from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
@@ -235,6 +236,27 @@ def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stoppe
     lowered.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=1"'))
     with pytest.raises(UsageError, match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets may be raised"):
         run_experiment(lowered, out, quiet=True)
+
+
+def test_deleting_a_budget_override_raises_the_budget_to_what_the_config_now_gives(tmp_path: Path) -> None:
+    """An override removed from the config no longer applies: the run gets the budget the rest of the config gives
+    it (here the paper's default), as a fresh experiment would; the experiment says it raised the budget, so it must
+    not count the old run as done. A learning rate too small to move a weight makes every epoch's validation loss
+    the first one's, so early stopping (patience 2) ends the raised run after epoch 3."""
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae"], [0])
+    config.write_text(config.read_text().replace(
+        '"train.flow_min_epochs=1"', '"train.flow_min_epochs=1", "train.flow_patience=2", "train.flow_lr=1e-30"'))
+    out = run_experiment(config, tmp_path / "exp", quiet=True)
+    flow_run = out / "runs" / "trajflow-no-ae-all-s0"
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 2
+    removed = tmp_path / "removed.toml"
+    removed.write_text(config.read_text().replace('"train.flow_max_epochs=2", ', ""))
+    assert "flow_max_epochs" not in removed.read_text()
+    run_experiment(removed, out, quiet=True)
+    assert load_config(flow_run / "config.toml").train.flow_max_epochs == 500
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 3
+    evaluated = json.loads((flow_run / "eval" / "eval.json").read_text())
+    assert evaluated["model_digest"] == json.loads((flow_run / "run.json").read_text())["rank_weight_digests"][0]
 
 
 def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) -> None:

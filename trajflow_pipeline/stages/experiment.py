@@ -62,7 +62,7 @@ from ..util.claim import claim, claims_supported
 from ..util.progress import console
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
 from .runs import weights_digest
-from .train import CONFIG_FILE, RUN_FILE, budget_raise, first_difference, raise_blocker
+from .train import BUDGET_KEYS, CONFIG_FILE, RUN_FILE, budget_raise, first_difference, raise_blocker
 
 INGESTS = ("synthetic-bimodal", "eth-ucy")
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
@@ -287,8 +287,13 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
 
 
 def run_overrides(config: ExperimentConfig, model: str) -> list[str]:
-    """The `--set` overrides the experiment gives `model`'s runs."""
-    return [*config.train_overrides, *config.model_overrides.get(model, ())]
+    """The `--set` overrides the experiment gives `model`'s runs, ending with every epoch budget spelled out.
+
+    A run resumes from its saved config with these applied, so a budget the experiment config no longer sets (an
+    override deleted, back to the default) must be named too, or the run would keep its old, lower one."""
+    given = [*config.train_overrides, *config.model_overrides.get(model, ())]
+    budgets = load_config(overrides=[*given, f"model.name={model}"]).train
+    return [*given, *(f"train.{key}={getattr(budgets, key)}" for key in BUDGET_KEYS)]
 
 
 def _run_config(config: ExperimentConfig, model: str) -> RunConfig:
