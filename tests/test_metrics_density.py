@@ -188,6 +188,51 @@ def _point_sets() -> list[np.ndarray]:
             two_blobs, rng.normal(size=(250, 48))]
 
 
+def test_the_direct_silhouette_is_scikit_learns_bit_for_bit() -> None:
+    """On ROME's kind of input (Euclidean distances, labels with noise -1, singletons, two to n - 1 clusters) and
+    on labelings the library refuses (one cluster, every point its own)."""
+    from sklearn.metrics import silhouette_score
+
+    from trajflow_pipeline.metrics.parallel import silhouette_precomputed
+
+    rng = np.random.default_rng(11)
+    checked = 0
+    for n, dim in ((100, 24), (37, 2), (5, 3), (250, 48)):
+        points = rng.normal(size=(n, dim)) * rng.uniform(0.1, 10.0, size=dim)
+        distances = np.sqrt(((points[:, None] - points[None]) ** 2).sum(-1))
+        for clusters in (2, 3, 7, n // 2, n - 1):
+            for noise in (0.0, 0.3):
+                labels = rng.integers(0, clusters, size=n)
+                labels[rng.random(n) < noise] = -1
+                if not 1 < np.unique(labels).size < n:
+                    continue
+                assert silhouette_precomputed(distances, labels) == silhouette_score(distances, labels,
+                                                                                     metric="precomputed")
+                checked += 1
+        for refused in (np.zeros(n, dtype=int), np.arange(n)):
+            with pytest.raises(ValueError, match="Number of labels is"):
+                silhouette_score(distances, refused, metric="precomputed")
+            with pytest.raises(ValueError, match="Number of labels is"):
+                silhouette_precomputed(distances, refused)
+    assert checked >= 30
+
+
+def test_our_rome_shortcuts_change_no_fit() -> None:
+    """A whole fit and score through `fit_and_score` (every shortcut on) against the unmodified library."""
+    from rome.ROME import ROME
+    from threadpoolctl import threadpool_limits
+
+    from trajflow_pipeline.metrics.parallel import RomeTask, fit_and_score
+
+    for seed, points in enumerate(_point_sets()):
+        queries = np.concatenate((points[:5] + 0.01, points.mean(0, keepdims=True)))
+        with threadpool_limits(limits=1):
+            np.random.seed(seed)
+            library = ROME().fit(points).score_samples(queries)
+        (ours,) = fit_and_score(RomeTask(fit=points, queries=(queries,)), seed)
+        assert np.array_equal(library, ours)
+
+
 def test_scoring_each_distinct_candidate_once_changes_no_rome_fit() -> None:
     from rome.ROME import ROME
 

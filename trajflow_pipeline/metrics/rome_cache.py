@@ -4,7 +4,8 @@ The ROME fits are most of an evaluation's time (an hour and more for a large tes
 result depends only on its task, its seed and the fitting code (see :mod:`trajflow_pipeline.metrics.parallel`).
 So finished fits are saved in parts, each written atomically and synced, under ``ROOT/<digest>/``. The digest
 covers every task's points, queries and minimum standard deviation, the seed, the number and order of the tasks,
-and what fits them: the versions of romepy, scikit-learn, numpy and scipy, whether our scoring shortcut is active,
+and what fits them: the versions of romepy, scikit-learn, numpy and scipy, whether our candidate-selection shortcut
+is active (the faster silhouettes and skipped checks change no bit, tested, so fits saved before them still count),
 this module's format version and the processor model (BLAS kernels differ between CPUs in the last bits). A rerun
 over the very same tasks on the same setup loads the saved fits and fits only the rest; anything else gets a
 directory of its own and never mixes. Loaded fits are checked against their tasks (count and length of the query
