@@ -72,7 +72,7 @@ def main() -> None:
     tasks = run_tasks(args.run, args.fits) if args.run else synthetic_tasks(args.fits)
     source = f"{args.run}" if args.run else "synthetic three-mode draws"
     print(f"{len(tasks)} fits of {tasks[0].fit.shape[0]} x {tasks[0].fit.shape[1]} points from {source}, "
-          f"{args.rounds} rounds")
+          f"{args.rounds} round(s)")
     fit_and_score(tasks[0], 0), library_fit(tasks[0], 0)  # imports and first-call costs outside the timing
     seconds: dict[str, list[float]] = {"shortcuts": [], "library": []}
     ways = {"shortcuts": fit_and_score, "library": library_fit}
