@@ -217,6 +217,34 @@ def test_the_direct_silhouette_is_scikit_learns_bit_for_bit() -> None:
     assert checked >= 30
 
 
+@pytest.mark.filterwarnings("ignore:All reachability values are inf", "ignore:divide by zero")
+def test_reachabilities_without_neighbour_queries_are_the_librarys() -> None:
+    """OPTICS as ROME runs it (Minkowski p = 2, no distance limit) gives the same ordering, core distances,
+    reachabilities and predecessors with the shortcut; other settings take the library's path."""
+    from sklearn.cluster import OPTICS
+
+    from trajflow_pipeline.metrics.parallel import _reachability_without_neighbour_queries
+
+    attributes = ("ordering_", "core_distances_", "reachability_", "predecessor_")
+    for points in _point_sets():
+        for options in ({"min_samples": 2}, {"min_samples": min(10, len(points) - 1)},
+                        {"min_samples": 2, "max_eps": 1.0}, {"min_samples": 2, "p": 1}):
+            library = OPTICS(**options).fit(points)
+            with _reachability_without_neighbour_queries():
+                ours = OPTICS(**options).fit(points)
+            for name in attributes:
+                assert np.array_equal(getattr(library, name), getattr(ours, name)), (name, options)
+
+
+def test_labels_are_encoded_as_scikit_learn_encodes_them() -> None:
+    from trajflow_pipeline.metrics.parallel import _encoded_labels
+
+    for labels in ([3, -1, 0, 1, 2, -1], [5, 9, 5, 7], [0, 0, 0], [-4, -2, -3], [2, 1]):
+        classes, expected = np.unique(labels, return_inverse=True)
+        encoded, count = _encoded_labels(np.array(labels))
+        assert np.array_equal(encoded, expected) and count == classes.size
+
+
 def test_our_rome_shortcuts_change_no_fit() -> None:
     """A whole fit and score through `fit_and_score` (every shortcut on) against the unmodified library."""
     from rome.ROME import ROME

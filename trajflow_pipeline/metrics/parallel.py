@@ -1,11 +1,12 @@
 """Run independent ROME density fits across processes, with identical numbers for any worker count.
 
 A ROME fit (OPTICS clustering, silhouette model selection over 199 candidate clusterings, per-cluster PCA
-whitening, Gaussian KDE) is the slow part of evaluation. On 100 x 24 points of real draws it takes about 0.05 s
+whitening, Gaussian KDE) is the slow part of evaluation. On 100 x 24 points of real draws it takes about 0.03 s
 here, against 0.22 s for the library as it is (bench/rome_shortcuts.py, which checks that every log-density is
-the same): scikit-learn's input validation is skipped, and so is its probing of numpy arrays for dataframes,
-each distinct candidate clustering is scored once, and silhouettes are computed directly from ROME's distance
-matrix (:func:`silhouette_precomputed`). None of these changes a number. Everything
+the same): scikit-learn's input validation is skipped, and so is its probing of numpy arrays for dataframes;
+OPTICS updates reachabilities without a neighbour query per point; each distinct candidate clustering is scored
+once, with silhouettes computed directly from ROME's distance matrix (:func:`silhouette_precomputed`). None of
+these changes a number. Everything
 else in `trajflow_pipeline.metrics` is vectorised numpy; the fits are the only per-task Python work, so this
 module spreads them over processes.
 
@@ -118,11 +119,9 @@ def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], i
 
     # One BLAS / OpenMP thread (faster for these small problems, and reproducible); scikit-learn's input
     # and parameter validation skipped (inputs are checked finite float64 here; ~20 % of a fit's time,
-    # numbers unchanged), and so is its probing of every numpy array for a dataframe library; each distinct
-    # candidate clustering scored once, by a direct silhouette computation (numbers unchanged, see below).
+    # numbers unchanged); the shortcuts below (numbers unchanged too).
     with threadpool_limits(limits=1), sklearn.config_context(assume_finite=True, skip_parameter_validation=True), \
-            _arrays_not_probed_as_dataframes(), _distinct_candidates_scored_once(), _silhouettes_computed_directly(), \
-            _rome_messages_counted() as messages:
+            _shortcuts(), _rome_messages_counted() as messages:
         np.random.seed(seed % (2**32))
         model = ROME(min_std=task.min_std).fit(np.ascontiguousarray(task.fit, dtype=np.float64))
         out = tuple(np.asarray(model.score_samples(np.ascontiguousarray(q, dtype=np.float64)), dtype=np.float64)
@@ -227,8 +226,8 @@ def silhouette_precomputed(distances: np.ndarray, labels: np.ndarray) -> float:
     one ``bincount`` over all rows sums each bucket in that same order) without the checks, which ROME's inputs
     pass by construction. Tested equal to the library on random and degenerate labelings.
     """
-    classes, encoded = np.unique(labels, return_inverse=True)
-    n_samples, n_labels = encoded.size, classes.size
+    encoded, n_labels = _encoded_labels(labels)
+    n_samples = encoded.size
     if not 1 < n_labels < n_samples:
         raise ValueError(f"Number of labels is {n_labels}. Valid values are 2 to n_samples - 1 (inclusive)")
     freqs = np.bincount(encoded)
@@ -245,6 +244,18 @@ def silhouette_precomputed(distances: np.ndarray, labels: np.ndarray) -> float:
         coefficients = inter - intra
         coefficients /= np.maximum(intra, inter)
     return float(np.mean(np.nan_to_num(coefficients)))
+
+
+def _encoded_labels(labels: np.ndarray) -> tuple[np.ndarray, int]:
+    """Labels as 0..k-1 in the order of their values (what scikit-learn's LabelEncoder gives) and k. ROME's integer
+    labels are nearly always every value from their minimum to their maximum, which needs no sort."""
+    labels = np.asarray(labels)
+    if labels.dtype.kind in "iu" and labels.size:
+        shifted = labels - labels.min()
+        if int(shifted.max()) < 2 * labels.size and np.bincount(shifted).all():
+            return shifted, int(shifted.max()) + 1
+    classes, encoded = np.unique(labels, return_inverse=True)
+    return encoded.reshape(-1), classes.size
 
 
 def _rome_silhouette(distances: np.ndarray, labels: np.ndarray, *, metric: str) -> float:
@@ -292,6 +303,59 @@ def _arrays_not_probed_as_dataframes() -> Iterator[None]:
         yield
     finally:
         validation._nw_into_df_or_series = probe
+
+
+@contextlib.contextmanager
+def _reachability_without_neighbour_queries() -> Iterator[None]:
+    """While active, OPTICS (which ROME runs once per fit) updates reachabilities without a neighbour query per point.
+
+    With no distance limit (``max_eps`` infinite, ROME's setting) the library's ``_set_reach_dist`` asks its
+    neighbour index for every point within an infinite radius, i.e. all of them, keeps the unprocessed ones and
+    computes their distances with ``pairwise_distances``, which for the Minkowski metric ends in scipy's ``cdist``:
+    about half of a fit's time, most of it in the two wrappers. This calls ``cdist`` on the unprocessed points
+    directly, with the same arguments, and then does the library's own update; each distance and therefore every
+    reachability, predecessor and the ordering are the same (tested). Any other setting runs the library's code.
+    """
+    from scipy.spatial.distance import cdist
+    from sklearn.cluster import _optics
+
+    library = getattr(_optics, "_set_reach_dist", None)
+    if library is None or _sklearn_version() not in _AUDITED_SKLEARN:
+        yield
+        return
+
+    def set_reach_dist(core_distances_: np.ndarray, reachability_: np.ndarray, predecessor_: np.ndarray,
+                       point_index: int, processed: np.ndarray, X: np.ndarray, nbrs: object, metric: object,
+                       metric_params: dict | None, p: float, max_eps: float) -> None:
+        if not (max_eps == np.inf and metric == "minkowski" and metric_params is None and type(X) is np.ndarray
+                and X.dtype == np.float64):
+            return library(core_distances_=core_distances_, reachability_=reachability_, predecessor_=predecessor_,
+                           point_index=point_index, processed=processed, X=X, nbrs=nbrs, metric=metric,
+                           metric_params=metric_params, p=p, max_eps=max_eps)
+        unprocessed = np.flatnonzero(~processed)
+        if not unprocessed.size:
+            return None
+        distances = cdist(X[point_index:point_index + 1], X[unprocessed], metric="minkowski", p=p).ravel()
+        reach = np.maximum(distances, core_distances_[point_index])
+        np.around(reach, decimals=np.finfo(reach.dtype).precision, out=reach)
+        improved = np.where(reach < np.take(reachability_, unprocessed))
+        reachability_[unprocessed[improved]] = reach[improved]
+        predecessor_[unprocessed[improved]] = point_index
+        return None
+
+    _optics._set_reach_dist = set_reach_dist
+    try:
+        yield
+    finally:
+        _optics._set_reach_dist = library
+
+
+@contextlib.contextmanager
+def _shortcuts() -> Iterator[None]:
+    """Every shortcut of this module at once; none changes a number (see each, and bench/rome_shortcuts.py)."""
+    with _arrays_not_probed_as_dataframes(), _distinct_candidates_scored_once(), _silhouettes_computed_directly(), \
+            _reachability_without_neighbour_queries():
+        yield
 
 
 def _run_batch(batch: list[tuple[int, RomeTask]],
