@@ -239,10 +239,50 @@ def test_reachabilities_without_neighbour_queries_are_the_librarys() -> None:
 def test_labels_are_encoded_as_scikit_learn_encodes_them() -> None:
     from trajflow_pipeline.metrics.parallel import _encoded_labels
 
-    for labels in ([3, -1, 0, 1, 2, -1], [5, 9, 5, 7], [0, 0, 0], [-4, -2, -3], [2, 1]):
+    cases = [np.array(labels) for labels in ([3, -1, 0, 1, 2, -1], [5, 9, 5, 7], [0, 0, 0], [-4, -2, -3], [2, 1])]
+    extreme = np.iinfo(np.int64)
+    cases += [np.array([-128, 127, 0], dtype=np.int8), np.array([3, 1, 3], dtype=np.uint64),
+              np.array([extreme.min, extreme.max, 0]), np.array([2.5, -1.0, 2.5])]
+    for labels in cases:
         classes, expected = np.unique(labels, return_inverse=True)
-        encoded, count = _encoded_labels(np.array(labels))
-        assert np.array_equal(encoded, expected) and count == classes.size
+        encoded, count = _encoded_labels(labels)
+        assert np.array_equal(encoded, expected) and count == classes.size and encoded.dtype == np.int64
+
+
+def test_fits_from_several_threads_take_turns_and_leave_the_libraries_as_they_were() -> None:
+    import threading
+
+    import rome.ROME as rome_module
+    import sklearn.metrics
+    from sklearn.cluster import _optics
+    from sklearn.utils import validation
+
+    from trajflow_pipeline.metrics.parallel import RomeTask, fit_and_score
+
+    before = (rome_module.silhouette_score, rome_module._silhouette_multiple_clusterings, _optics._set_reach_dist,
+              validation._nw_into_df_or_series)
+    points = _point_sets()[0]
+    task = RomeTask(fit=points, queries=(points[:3],))
+    expected = fit_and_score(task, 0)
+    results: list[tuple[np.ndarray, ...]] = []
+    threads = [threading.Thread(target=lambda: results.append(fit_and_score(task, 0))) for _ in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(results) == 3 and all(np.array_equal(r[0], expected[0]) for r in results)
+    assert rome_module.silhouette_score is sklearn.metrics.silhouette_score
+    assert (rome_module.silhouette_score, rome_module._silhouette_multiple_clusterings, _optics._set_reach_dist,
+            validation._nw_into_df_or_series) == before
+    assert "print" not in vars(rome_module)
+
+
+def test_points_whose_distances_overflow_are_refused() -> None:
+    from trajflow_pipeline.metrics.parallel import RomeTask, fit_and_score
+
+    points = np.random.default_rng(0).normal(size=(20, 4)) * 1e154
+    with pytest.raises(DataError, match="too far apart for a density estimate"):
+        fit_and_score(RomeTask(fit=points, queries=(points[:1],), label="the far ones"), 0)
 
 
 def test_our_rome_shortcuts_change_no_fit() -> None:

@@ -37,6 +37,7 @@ import functools
 import importlib.metadata
 import multiprocessing
 import os
+import threading
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -105,14 +106,21 @@ def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], i
     back to re-running a failed PCA with jitter (0 for most fits).
 
     Runs in whichever process calls it; BLAS / OpenMP threads are limited to one and numpy's global RNG is
-    seeded with `seed` so that the result is a function of (task, seed) only. Finiteness is checked here
-    once, and scikit-learn's own (repeated) input validation is switched off for speed. ROME's `score_samples`
+    seeded with `seed` so that the result is a function of (task, seed) only. Those settings and our shortcuts
+    are process-wide, so fits from several threads of one process take turns. Finiteness is checked here once
+    (of the points, and of their squared extent, which bounds every distance ROME computes), and scikit-learn's
+    own (repeated) input validation is switched off for speed. ROME's `score_samples`
     returns a natural-log density (log-sum-exp over clusters of KDE log-densities, each computed in log
     space), so points far from every sample get a very negative but finite value, never -inf: no floor
     is applied. A non-finite result can only come from a degenerate fit and is reported as a DataError.
     """
     if not (np.isfinite(task.fit).all() and all(np.isfinite(q).all() for q in task.queries)):
         raise DataError(f"non-finite values in the points of {task.label}")
+    with np.errstate(over="ignore"):
+        extent = float(np.square(np.ptp(np.asarray(task.fit, dtype=np.float64), axis=0)).sum())
+    if not np.isfinite(extent):
+        raise DataError(f"the points of {task.label} are too far apart for a density estimate (their distances "
+                        "overflow double precision): are they in the right units?")
     import sklearn
     from rome.ROME import ROME
     from threadpoolctl import threadpool_limits
@@ -120,8 +128,9 @@ def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], i
     # One BLAS / OpenMP thread (faster for these small problems, and reproducible); scikit-learn's input
     # and parameter validation skipped (inputs are checked finite float64 here; ~20 % of a fit's time,
     # numbers unchanged); the shortcuts below (numbers unchanged too).
-    with threadpool_limits(limits=1), sklearn.config_context(assume_finite=True, skip_parameter_validation=True), \
-            _shortcuts(), _rome_messages_counted() as messages:
+    with _ONE_FIT_AT_A_TIME, threadpool_limits(limits=1), \
+            sklearn.config_context(assume_finite=True, skip_parameter_validation=True), _shortcuts(), \
+            _rome_messages_counted() as messages:
         np.random.seed(seed % (2**32))
         model = ROME(min_std=task.min_std).fit(np.ascontiguousarray(task.fit, dtype=np.float64))
         out = tuple(np.asarray(model.score_samples(np.ascontiguousarray(q, dtype=np.float64)), dtype=np.float64)
@@ -133,6 +142,10 @@ def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], i
                             "the sample set is degenerate")
     return out, sum(PCA_RETRY_MESSAGE in message for message in messages)
 
+
+#: Held while a fit runs: the RNG seed, thread limits and module patches of a fit are process-wide, and two threads
+#: patching and restoring the same attributes could leave them patched.
+_ONE_FIT_AT_A_TIME = threading.RLock()
 
 #: What ROME prints (once per failed attempt) when it re-runs a cluster's PCA with jitter.
 PCA_RETRY_MESSAGE = "PCA failed"
@@ -217,8 +230,10 @@ def _sklearn_version() -> str | None:
 
 
 def silhouette_precomputed(distances: np.ndarray, labels: np.ndarray) -> float:
-    """The mean silhouette coefficient of `labels` (n,) over a dense float64 distance matrix (n, n) with a zero
-    diagonal: scikit-learn's ``silhouette_score(distances, labels, metric="precomputed")``, bit for bit.
+    """The mean silhouette coefficient of 1-D integer `labels` (n,) over a dense float64 distance matrix (n, n)
+    of finite, non-negative distances with a zero diagonal: scikit-learn's ``silhouette_score(distances, labels,
+    metric="precomputed")``, bit for bit, for such inputs (the only ones ROME passes; other dtypes, shapes or
+    invalid matrices are not checked here, and `_rome_silhouette` gives them to the library).
 
     ROME calls that function twice per candidate clustering (~190 times per fit), and most of its time there goes
     to validating the same 100 x 100 matrix again. This is the library's arithmetic in the library's order (per
@@ -226,6 +241,7 @@ def silhouette_precomputed(distances: np.ndarray, labels: np.ndarray) -> float:
     one ``bincount`` over all rows sums each bucket in that same order) without the checks, which ROME's inputs
     pass by construction. Tested equal to the library on random and degenerate labelings.
     """
+    labels = np.asarray(labels)
     encoded, n_labels = _encoded_labels(labels)
     n_samples = encoded.size
     if not 1 < n_labels < n_samples:
@@ -247,21 +263,27 @@ def silhouette_precomputed(distances: np.ndarray, labels: np.ndarray) -> float:
 
 
 def _encoded_labels(labels: np.ndarray) -> tuple[np.ndarray, int]:
-    """Labels as 0..k-1 in the order of their values (what scikit-learn's LabelEncoder gives) and k. ROME's integer
-    labels are nearly always every value from their minimum to their maximum, which needs no sort."""
-    labels = np.asarray(labels)
-    if labels.dtype.kind in "iu" and labels.size:
-        shifted = labels - labels.min()
-        if int(shifted.max()) < 2 * labels.size and np.bincount(shifted).all():
-            return shifted, int(shifted.max()) + 1
+    """1-D labels as 0..k-1 in the order of their values (the codes scikit-learn's LabelEncoder gives, as int64)
+    and k. ROME's int64 labels are nearly always every value from their minimum to their maximum, which needs no
+    sort."""
+    if labels.dtype == np.int64 and labels.ndim == 1 and labels.size:
+        low, high = int(labels.min()), int(labels.max())
+        if high - low < 2 * labels.size:  # a small range: no overflow, and a short bincount
+            shifted = labels - low
+            if np.bincount(shifted).all():
+                return shifted, high - low + 1
     classes, encoded = np.unique(labels, return_inverse=True)
-    return encoded.reshape(-1), classes.size
+    return encoded.reshape(-1).astype(np.int64), classes.size
 
 
 def _rome_silhouette(distances: np.ndarray, labels: np.ndarray, *, metric: str) -> float:
-    """What ROME's module calls as ``silhouette_score``: always on its precomputed distances."""
-    if metric != "precomputed":
-        raise ValueError(f"ROME's silhouette shortcut handles precomputed distances only, not metric={metric!r}")
+    """What ROME's module calls as ``silhouette_score``: the direct computation for ROME's input (precomputed
+    float64 distances, 1-D integer labels), the library's function for anything else."""
+    labels = np.asarray(labels)
+    if (metric != "precomputed" or type(distances) is not np.ndarray or distances.dtype != np.float64
+            or distances.ndim != 2 or labels.ndim != 1 or labels.dtype.kind not in "iu"):
+        from sklearn.metrics import silhouette_score
+        return silhouette_score(distances, labels, metric=metric)
     return silhouette_precomputed(distances, labels)
 
 
@@ -312,9 +334,10 @@ def _reachability_without_neighbour_queries() -> Iterator[None]:
     With no distance limit (``max_eps`` infinite, ROME's setting) the library's ``_set_reach_dist`` asks its
     neighbour index for every point within an infinite radius, i.e. all of them, keeps the unprocessed ones and
     computes their distances with ``pairwise_distances``, which for the Minkowski metric ends in scipy's ``cdist``:
-    about half of a fit's time, most of it in the two wrappers. This calls ``cdist`` on the unprocessed points
-    directly, with the same arguments, and then does the library's own update; each distance and therefore every
-    reachability, predecessor and the ordering are the same (tested). Any other setting runs the library's code.
+    about half of a fit's time, most of it in the two wrappers. This makes the same ``cdist`` call on the
+    unprocessed points directly (in ascending order rather than the index's; each distance is computed from its
+    own pair alone) and then does the library's own update; each distance and therefore every reachability,
+    predecessor and the ordering are the same (tested). Any other setting runs the library's code.
     """
     from scipy.spatial.distance import cdist
     from sklearn.cluster import _optics
