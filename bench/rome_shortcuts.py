@@ -7,7 +7,7 @@ scored at its ground truth and at its own draws. The draws come from an evaluate
 and `ground_truth.parquet`, the first `--fits` agents) or, without `--run`, from the synthetic three-mode problems
 of bench/eval.py. Each round fits every task twice, alternating the order of the two ways (so that load from other
 programs on a shared machine hits both alike): through `fit_and_score` (every shortcut of
-trajflow_pipeline.metrics.parallel on) and through ROME itself (one BLAS thread and the same seed, as a fit runs
+trajflow_pipeline.metrics.rome_shortcuts on) and through ROME itself (one BLAS thread and the same seed, as a fit runs
 there, nothing else changed). It checks that every log-density is bit-identical and prints the median seconds per
 fit of each way and their ratio.
 """

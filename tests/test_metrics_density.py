@@ -193,7 +193,7 @@ def test_the_direct_silhouette_is_scikit_learns_bit_for_bit() -> None:
     on labelings the library refuses (one cluster, every point its own)."""
     from sklearn.metrics import silhouette_score
 
-    from trajflow_pipeline.metrics.parallel import silhouette_precomputed
+    from trajflow_pipeline.metrics.rome_shortcuts import silhouette_precomputed
 
     rng = np.random.default_rng(11)
     checked = 0
@@ -223,21 +223,21 @@ def test_reachabilities_without_neighbour_queries_are_the_librarys() -> None:
     reachabilities and predecessors with the shortcut; other settings take the library's path."""
     from sklearn.cluster import OPTICS
 
-    from trajflow_pipeline.metrics.parallel import _reachability_without_neighbour_queries
+    from trajflow_pipeline.metrics.rome_shortcuts import reachability_without_neighbour_queries
 
     attributes = ("ordering_", "core_distances_", "reachability_", "predecessor_")
     for points in _point_sets():
         for options in ({"min_samples": 2}, {"min_samples": min(10, len(points) - 1)},
                         {"min_samples": 2, "max_eps": 1.0}, {"min_samples": 2, "p": 1}):
             library = OPTICS(**options).fit(points)
-            with _reachability_without_neighbour_queries():
+            with reachability_without_neighbour_queries():
                 ours = OPTICS(**options).fit(points)
             for name in attributes:
                 assert np.array_equal(getattr(library, name), getattr(ours, name)), (name, options)
 
 
 def test_labels_are_encoded_as_scikit_learn_encodes_them() -> None:
-    from trajflow_pipeline.metrics.parallel import _encoded_labels
+    from trajflow_pipeline.metrics.rome_shortcuts import _encoded_labels
 
     cases = [np.array(labels) for labels in ([3, -1, 0, 1, 2, -1], [5, 9, 5, 7], [0, 0, 0], [-4, -2, -3], [2, 1])]
     extreme = np.iinfo(np.int64)
@@ -304,17 +304,17 @@ def test_our_rome_shortcuts_change_no_fit() -> None:
 def test_scoring_each_distinct_candidate_once_changes_no_rome_fit() -> None:
     from rome.ROME import ROME
 
-    from trajflow_pipeline.metrics.parallel import _AUDITED_ROMEPY, _distinct_candidates_scored_once, _romepy_version
+    from trajflow_pipeline.metrics.rome_shortcuts import distinct_candidates_scored_once, installed_version, romepy_audited
 
-    if _romepy_version() not in _AUDITED_ROMEPY:
-        pytest.skip(f"romepy {_romepy_version()} is not one the shortcut was checked against: it is not applied")
+    if not romepy_audited():
+        pytest.skip(f"romepy {installed_version('romepy')} is not one the shortcut was checked against: it is not applied")
 
     clustered = 0
     for points in _point_sets():
         queries = np.concatenate((points[:5] + 0.01, points.mean(0, keepdims=True)))
         np.random.seed(0)
         library = ROME().fit(points)
-        with _distinct_candidates_scored_once():
+        with distinct_candidates_scored_once():
             np.random.seed(0)
             ours = ROME().fit(points)
         assert np.array_equal(library.labels_, ours.labels_)

@@ -2,12 +2,10 @@
 
 A ROME fit (OPTICS clustering, silhouette model selection over 199 candidate clusterings, per-cluster PCA
 whitening, Gaussian KDE) is the slow part of evaluation. On 100 x 24 points of real draws it takes about 0.03 s
-here, against 0.22 s for the library as it is (bench/rome_shortcuts.py, which checks that every log-density is
-the same): scikit-learn's input validation is skipped, and so is its probing of numpy arrays for dataframes;
-OPTICS updates reachabilities without a neighbour query per point; each distinct candidate clustering is scored
-once, with silhouettes computed directly from ROME's distance matrix (:func:`silhouette_precomputed`). None of
-these changes a number. Everything
-else in `trajflow_pipeline.metrics` is vectorised numpy; the fits are the only per-task Python work, so this
+here, against 0.22 s for the library as it is: scikit-learn's input validation is skipped, and the shortcuts of
+:mod:`trajflow_pipeline.metrics.rome_shortcuts` avoid most of its per-call overhead; none of these changes a
+number (bench/rome_shortcuts.py checks every log-density). Everything else in `trajflow_pipeline.metrics` is
+vectorised numpy; the fits are the only per-task Python work, so this
 module spreads them over processes.
 
 Determinism: every task is run with BLAS / OpenMP limited to one thread (which is also ~2.5x faster for
@@ -33,8 +31,6 @@ start methods can import them.
 from __future__ import annotations
 
 import contextlib
-import functools
-import importlib.metadata
 import multiprocessing
 import os
 import threading
@@ -47,6 +43,7 @@ import numpy as np
 
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
+from trajflow_pipeline.metrics.rome_shortcuts import romepy_audited, shortcuts
 from trajflow_pipeline.util.progress import console, make_progress
 
 #: ROME's default minimum standard deviation (metres here); the reference framework uses the default too.
@@ -127,9 +124,9 @@ def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], i
 
     # One BLAS / OpenMP thread (faster for these small problems, and reproducible); scikit-learn's input
     # and parameter validation skipped (inputs are checked finite float64 here; ~20 % of a fit's time,
-    # numbers unchanged); the shortcuts below (numbers unchanged too).
+    # numbers unchanged); the shortcuts of rome_shortcuts (numbers unchanged too).
     with _ONE_FIT_AT_A_TIME, threadpool_limits(limits=1), \
-            sklearn.config_context(assume_finite=True, skip_parameter_validation=True), _shortcuts(), \
+            sklearn.config_context(assume_finite=True, skip_parameter_validation=True), shortcuts(), \
             _rome_messages_counted() as messages:
         np.random.seed(seed % (2**32))
         model = ROME(min_std=task.min_std).fit(np.ascontiguousarray(task.fit, dtype=np.float64))
@@ -173,212 +170,6 @@ def _rome_messages_counted() -> Iterator[list[str]]:
             del rome_module.print  # type: ignore[attr-defined]
         else:
             rome_module.print = shadowed  # type: ignore[attr-defined]
-
-
-#: romepy versions whose candidate selection (_silhouette_multiple_clusterings) was read and tested here.
-_AUDITED_ROMEPY = frozenset({"0.1.4"})
-
-
-@functools.cache
-def _romepy_version() -> str | None:
-    try:
-        return importlib.metadata.version("romepy")
-    except importlib.metadata.PackageNotFoundError:
-        return None
-
-
-@contextlib.contextmanager
-def _distinct_candidates_scored_once() -> Iterator[None]:
-    """While active, ROME's choice among its candidate clusterings scores each distinct candidate only once.
-
-    A ROME fit extracts 199 candidate clusterings from one OPTICS ordering and scores every usable one by
-    silhouette (two scikit-learn calls each), which is most of a fit. The candidates repeat: for 100 draws of
-    12 steps, ~45 of ~180 usable ones are distinct. ROME keeps the first candidate with the best score, and a
-    repeated candidate scores exactly what its first occurrence did, so passing ROME's own selection function only
-    the first occurrence of each distinct candidate, in their order, picks the same clustering bit for bit
-    (tested against the unmodified library). The argument rests on that function's body, so only the romepy
-    versions it was checked against are changed; with any other the library runs as it is.
-    """
-    import rome.ROME as rome_module
-
-    select = getattr(rome_module, "_silhouette_multiple_clusterings", None)
-    if select is None or _romepy_version() not in _AUDITED_ROMEPY:
-        yield
-        return
-
-    def select_among_distinct(points: np.ndarray, clusterings: np.ndarray) -> np.ndarray:
-        _, first = np.unique(clusterings, axis=1, return_index=True)
-        return select(points, clusterings[:, np.sort(first)])
-
-    rome_module._silhouette_multiple_clusterings = select_among_distinct
-    try:
-        yield
-    finally:
-        rome_module._silhouette_multiple_clusterings = select
-
-
-#: scikit-learn versions whose silhouette_score / silhouette_samples were read and mirrored by `silhouette_precomputed`.
-_AUDITED_SKLEARN = frozenset({"1.9.1"})
-
-
-@functools.cache
-def _sklearn_version() -> str | None:
-    try:
-        return importlib.metadata.version("scikit-learn")
-    except importlib.metadata.PackageNotFoundError:
-        return None
-
-
-def silhouette_precomputed(distances: np.ndarray, labels: np.ndarray) -> float:
-    """The mean silhouette coefficient of 1-D integer `labels` (n,) over a dense float64 distance matrix (n, n)
-    of finite, non-negative distances with a zero diagonal: scikit-learn's ``silhouette_score(distances, labels,
-    metric="precomputed")``, bit for bit, for such inputs (the only ones ROME passes; other dtypes, shapes or
-    invalid matrices are not checked here, and `_rome_silhouette` gives them to the library).
-
-    ROME calls that function twice per candidate clustering (~190 times per fit), and most of its time there goes
-    to validating the same 100 x 100 matrix again. This is the library's arithmetic in the library's order (per
-    sample, the distances to each cluster summed in ascending sample order, as its per-row ``np.bincount`` does;
-    one ``bincount`` over all rows sums each bucket in that same order) without the checks, which ROME's inputs
-    pass by construction. Tested equal to the library on random and degenerate labelings.
-    """
-    labels = np.asarray(labels)
-    encoded, n_labels = _encoded_labels(labels)
-    n_samples = encoded.size
-    if not 1 < n_labels < n_samples:
-        raise ValueError(f"Number of labels is {n_labels}. Valid values are 2 to n_samples - 1 (inclusive)")
-    freqs = np.bincount(encoded)
-    buckets = (np.arange(n_samples)[:, None] * n_labels + encoded[None, :]).ravel()
-    cluster_sums = np.bincount(buckets, weights=distances.ravel(), minlength=n_samples * n_labels)
-    cluster_sums = cluster_sums.reshape(n_samples, n_labels)
-    own = (np.arange(n_samples), encoded)
-    intra = cluster_sums[own]
-    cluster_sums[own] = np.inf
-    cluster_sums /= freqs
-    inter = cluster_sums.min(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        intra /= (freqs - 1).take(encoded, mode="clip")
-        coefficients = inter - intra
-        coefficients /= np.maximum(intra, inter)
-    return float(np.mean(np.nan_to_num(coefficients)))
-
-
-def _encoded_labels(labels: np.ndarray) -> tuple[np.ndarray, int]:
-    """1-D labels as 0..k-1 in the order of their values (the codes scikit-learn's LabelEncoder gives, as int64)
-    and k. ROME's int64 labels are nearly always every value from their minimum to their maximum, which needs no
-    sort."""
-    if labels.dtype == np.int64 and labels.ndim == 1 and labels.size:
-        low, high = int(labels.min()), int(labels.max())
-        if high - low < 2 * labels.size:  # a small range: no overflow, and a short bincount
-            shifted = labels - low
-            if np.bincount(shifted).all():
-                return shifted, high - low + 1
-    classes, encoded = np.unique(labels, return_inverse=True)
-    return encoded.reshape(-1).astype(np.int64), classes.size
-
-
-def _rome_silhouette(distances: np.ndarray, labels: np.ndarray, *, metric: str) -> float:
-    """What ROME's module calls as ``silhouette_score``: the direct computation for ROME's input (precomputed
-    float64 distances, 1-D integer labels), the library's function for anything else."""
-    labels = np.asarray(labels)
-    if (metric != "precomputed" or type(distances) is not np.ndarray or distances.dtype != np.float64
-            or distances.ndim != 2 or labels.ndim != 1 or labels.dtype.kind not in "iu"):
-        from sklearn.metrics import silhouette_score
-        return silhouette_score(distances, labels, metric=metric)
-    return silhouette_precomputed(distances, labels)
-
-
-@contextlib.contextmanager
-def _silhouettes_computed_directly() -> Iterator[None]:
-    """While active, ROME's candidate scoring uses :func:`silhouette_precomputed` (same numbers, ~20x less time
-    per call) instead of scikit-learn's ``silhouette_score``; only for the romepy and scikit-learn versions it was
-    checked against (with any other the library runs as it is)."""
-    import rome.ROME as rome_module
-
-    library = getattr(rome_module, "silhouette_score", None)
-    if library is None or _romepy_version() not in _AUDITED_ROMEPY or _sklearn_version() not in _AUDITED_SKLEARN:
-        yield
-        return
-    rome_module.silhouette_score = _rome_silhouette
-    try:
-        yield
-    finally:
-        rome_module.silhouette_score = library
-
-
-@contextlib.contextmanager
-def _arrays_not_probed_as_dataframes() -> Iterator[None]:
-    """While active, scikit-learn's input checks take a numpy array for what it is instead of asking every
-    installed dataframe library whether it is one of theirs (about a quarter of a ROME fit's time, spent in
-    ``inspect.getattr_static``). Other inputs are probed as before, so nothing else changes."""
-    from sklearn.utils import validation
-
-    probe = getattr(validation, "_nw_into_df_or_series", None)
-    if probe is None:
-        yield
-        return
-
-    def probe_unless_array(x: object) -> bool:
-        return False if type(x) is np.ndarray else probe(x)
-
-    validation._nw_into_df_or_series = probe_unless_array
-    try:
-        yield
-    finally:
-        validation._nw_into_df_or_series = probe
-
-
-@contextlib.contextmanager
-def _reachability_without_neighbour_queries() -> Iterator[None]:
-    """While active, OPTICS (which ROME runs once per fit) updates reachabilities without a neighbour query per point.
-
-    With no distance limit (``max_eps`` infinite, ROME's setting) the library's ``_set_reach_dist`` asks its
-    neighbour index for every point within an infinite radius, i.e. all of them, keeps the unprocessed ones and
-    computes their distances with ``pairwise_distances``, which for the Minkowski metric ends in scipy's ``cdist``:
-    about half of a fit's time, most of it in the two wrappers. This makes the same ``cdist`` call on the
-    unprocessed points directly (in ascending order rather than the index's; each distance is computed from its
-    own pair alone) and then does the library's own update; each distance and therefore every reachability,
-    predecessor and the ordering are the same (tested). Any other setting runs the library's code.
-    """
-    from scipy.spatial.distance import cdist
-    from sklearn.cluster import _optics
-
-    library = getattr(_optics, "_set_reach_dist", None)
-    if library is None or _sklearn_version() not in _AUDITED_SKLEARN:
-        yield
-        return
-
-    def set_reach_dist(core_distances_: np.ndarray, reachability_: np.ndarray, predecessor_: np.ndarray,
-                       point_index: int, processed: np.ndarray, X: np.ndarray, nbrs: object, metric: object,
-                       metric_params: dict | None, p: float, max_eps: float) -> None:
-        if not (max_eps == np.inf and metric == "minkowski" and metric_params is None and type(X) is np.ndarray
-                and X.dtype == np.float64):
-            return library(core_distances_=core_distances_, reachability_=reachability_, predecessor_=predecessor_,
-                           point_index=point_index, processed=processed, X=X, nbrs=nbrs, metric=metric,
-                           metric_params=metric_params, p=p, max_eps=max_eps)
-        unprocessed = np.flatnonzero(~processed)
-        if not unprocessed.size:
-            return None
-        distances = cdist(X[point_index:point_index + 1], X[unprocessed], metric="minkowski", p=p).ravel()
-        reach = np.maximum(distances, core_distances_[point_index])
-        np.around(reach, decimals=np.finfo(reach.dtype).precision, out=reach)
-        improved = np.where(reach < np.take(reachability_, unprocessed))
-        reachability_[unprocessed[improved]] = reach[improved]
-        predecessor_[unprocessed[improved]] = point_index
-        return None
-
-    _optics._set_reach_dist = set_reach_dist
-    try:
-        yield
-    finally:
-        _optics._set_reach_dist = library
-
-
-@contextlib.contextmanager
-def _shortcuts() -> Iterator[None]:
-    """Every shortcut of this module at once; none changes a number (see each, and bench/rome_shortcuts.py)."""
-    with _arrays_not_probed_as_dataframes(), _distinct_candidates_scored_once(), _silhouettes_computed_directly(), \
-            _reachability_without_neighbour_queries():
-        yield
 
 
 def _run_batch(batch: list[tuple[int, RomeTask]],
@@ -440,7 +231,7 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     retries = np.zeros(n_tasks, dtype=np.int64)
     if n_tasks == 0:
         return []
-    store = (RomeCache(cache, tasks, base_seed, patched=_romepy_version() in _AUDITED_ROMEPY)
+    store = (RomeCache(cache, tasks, base_seed, patched=romepy_audited())
              if cache is not None else None)
     for index, (values, retried) in (store.load() if store is not None else {}).items():
         results[index], retries[index] = values, retried
