@@ -252,11 +252,37 @@ def test_deleting_a_budget_override_raises_the_budget_to_what_the_config_now_giv
     removed = tmp_path / "removed.toml"
     removed.write_text(config.read_text().replace('"train.flow_max_epochs=2", ', ""))
     assert "flow_max_epochs" not in removed.read_text()
+    evaluated_before = json.loads((flow_run / "eval" / "eval.json").read_text())["date"]
     run_experiment(removed, out, quiet=True)
     assert load_config(flow_run / "config.toml").train.flow_max_epochs == 500
     assert pl.read_parquet(flow_run / "train_log.parquet").height == 3
-    evaluated = json.loads((flow_run / "eval" / "eval.json").read_text())
-    assert evaluated["model_digest"] == json.loads((flow_run / "run.json").read_text())["rank_weight_digests"][0]
+    # evaluated again after the longer training (the kept weights are epoch 1's both times: the digest cannot tell)
+    evaluated = json.loads((flow_run / "eval" / "eval.json").read_text())["date"]
+    finished = json.loads((flow_run / "run.json").read_text())["finished"]
+    assert evaluated != evaluated_before and evaluated >= finished
+
+
+def test_a_budget_raised_for_one_run_by_hand_is_kept_by_the_experiment(tmp_path: Path) -> None:
+    """`trajflow train --resume --set train.flow_max_epochs=N` beyond the experiment's budget, then eval: the
+    experiment counts the run as done (it never lowers a budget), status shows the run's own budget, and a later
+    raise of the experiment's budget above it continues the run."""
+    from trajflow_pipeline.stages.status import experiment_status
+
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae"], [0])
+    out = run_experiment(config, tmp_path / "exp", quiet=True)
+    flow_run = out / "runs" / "trajflow-no-ae-all-s0"
+    train(tmp_path / "data", flow_run, resume=True, overrides=["train.flow_max_epochs=3"], quiet=True)
+    evaluate(flow_run, data=tmp_path / "data", options=EvalOptions(samples=10, k=5, workers=1), quiet=True)
+    log = (flow_run / "train_log.parquet").read_bytes()
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 3
+    run_experiment(config, out, quiet=True)
+    assert (flow_run / "train_log.parquet").read_bytes() == log
+    (status,) = experiment_status(out).runs
+    assert status.state == "done" and status.progress is not None and status.progress.max_epochs == 3
+    raised = tmp_path / "raised.toml"
+    raised.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=4"'))
+    run_experiment(raised, out, quiet=True)
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 4
 
 
 def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) -> None:

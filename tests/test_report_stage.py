@@ -409,3 +409,24 @@ def test_nll_medians_beside_the_means(tmp_path: Path) -> None:
     assert _table_row(_section(markdown, "ETH/UCY"), "TrajFlow")[6] == "**-19.99 ± 0.01**"  # the aggregates
     medians_json = json.loads((out / "report.json").read_text())["nll_medians"]
     assert {(r["metric"], r["mean"]) for r in medians_json["summary"]} >= {("nll", 0.0)}
+
+
+def test_nll_medians_name_runs_without_per_agent_rows_and_keep_nan(tmp_path: Path) -> None:
+    """A run whose table holds only aggregates is named in a note, not silently averaged out; a NaN among a run's
+    per-agent values makes its median NaN, as its mean would be, rather than the median of the rest."""
+    runs = [write_run(tmp_path / "runs", model="trajflow", dataset="eth_ucy", fold=f, seed=0, samples=5)
+            for f in ("eth", "hotel", "univ")]
+    path = runs[1] / "eval" / "metrics.parquet"
+    pl.read_parquet(path).filter(pl.col("aggregate")).write_parquet(path)
+    path = runs[2] / "eval" / "metrics.parquet"
+    table = pl.read_parquet(path)
+    values = table["value"].to_numpy().copy()
+    values[((table["metric"] == "nll") & ~table["aggregate"]).to_numpy()] = [1.0, 2.0, np.nan, 4.0, 5.0]
+    table.with_columns(value=pl.Series(values)).write_parquet(path)
+    markdown = (report(runs, tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
+    medians = markdown[markdown.index("### NLL medians"):markdown.index("### Compute")]
+    assert "Note: no per-agent NLL rows to take medians of in 1 run (trajflow-hotel-s0); the medians below leave " \
+           "it out." in medians
+    assert _table_row(medians, "TrajFlow")[1] == "2"
+    per_fold = medians[medians.index("#### NLL indep median, per fold"):]
+    assert _table_row(per_fold, "univ")[1] == "nan" and "hotel" not in per_fold.split("####")[1]

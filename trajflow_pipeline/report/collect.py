@@ -228,12 +228,17 @@ def run_metrics(run: Run) -> pl.DataFrame:
 
 
 def run_medians(run: Run) -> pl.DataFrame:
-    """The median of the run's per-agent (joint: per-group) rows of each unbounded metric (NLL and its variants),
-    as (metric, value): the typical problem, which a few far-off ground truths cannot move as they move the mean."""
+    """The median of the run's per-agent (joint: per-group) rows of each unbounded metric (NLL and its variants
+    that have such rows; `*_ext_long` has only its aggregate), as (metric, value): the typical problem, which a few
+    far-off ground truths cannot move as they move the mean. NaN where any row is NaN (as the mean would be),
+    rather than a median of the other rows."""
     path = run.eval_dir / "metrics.parquet"
+    value = pl.col("value")
     scan = (scan_table(path, METRICS_COLUMNS, what="metrics table")
             .filter(~pl.col("aggregate") & pl.col("metric").str.starts_with(UNBOUNDED_PREFIX))
-            .group_by("metric").agg(pl.col("value").median()).sort("metric"))
+            .group_by("metric")
+            .agg(pl.when(value.is_nan().any()).then(pl.lit(float("nan"))).otherwise(value.median()).alias("value"))
+            .sort("metric"))
     return collect(scan, path, "metrics table")
 
 

@@ -236,8 +236,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     plan = _plan(config, data)
     if changed:  # every run must be able to follow the raised budgets before anything changes
         blockers = [b for model, fold, seed in plan
-                    if (b := raise_blocker(out / "runs" / run_name(model, fold, seed),
-                                           run_overrides(config, model)))]
+                    if (b := raise_blocker(run_dir := out / "runs" / run_name(model, fold, seed),
+                                           run_overrides(config, model, run_dir)))]
         if blockers:
             raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
                              + ". Use a new -o for the larger budget")
@@ -249,7 +249,7 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
         _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs)
     _write_index(out, config, data, plan)
     elsewhere = [run_name(*key) for key in plan
-                 if not run_done(out / "runs" / run_name(*key), run_overrides(config, key[0]))]
+                 if not run_done(run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir))]
     if elsewhere and not quiet:
         console.print(f"[yellow]{len(elsewhere)} run(s) are still in progress in another process[/] "
                       f"({', '.join(elsewhere)}); the index includes them once they finish")
@@ -286,14 +286,20 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
                       + "): runs their old budget stopped continue from their last epoch and are evaluated again")
 
 
-def run_overrides(config: ExperimentConfig, model: str) -> list[str]:
-    """The `--set` overrides the experiment gives `model`'s runs, ending with every epoch budget spelled out.
+def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = None) -> list[str]:
+    """The `--set` overrides the experiment gives `model`'s runs (the one in `run_dir`, when given), ending with
+    every epoch budget spelled out: the experiment's, or the run's own where that is higher.
 
     A run resumes from its saved config with these applied, so a budget the experiment config no longer sets (an
-    override deleted, back to the default) must be named too, or the run would keep its old, lower one."""
+    override deleted, back to the default) must be named too, or the run would keep its old, lower one. A budget
+    raised beyond the experiment's for one run (`trajflow train --resume --set ...`) stays: an experiment never
+    lowers a budget, it would only refuse to resume such a run. (A change of the built-in default budget counts as
+    a change of the experiment's: its runs would continue to the new default.)"""
     given = [*config.train_overrides, *config.model_overrides.get(model, ())]
     budgets = load_config(overrides=[*given, f"model.name={model}"]).train
-    return [*given, *(f"train.{key}={getattr(budgets, key)}" for key in BUDGET_KEYS)]
+    saved_path = None if run_dir is None else run_dir / CONFIG_FILE
+    own = load_config(saved_path).train if saved_path is not None and saved_path.is_file() else budgets
+    return [*given, *(f"train.{key}={max(getattr(budgets, key), getattr(own, key))}" for key in BUDGET_KEYS)]
 
 
 def _run_config(config: ExperimentConfig, model: str) -> RunConfig:
@@ -359,8 +365,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         run_dir = out / "runs" / name
-        overrides = run_overrides(config, model)
-        if run_done(run_dir, overrides):
+        if run_done(run_dir, run_overrides(config, model, run_dir)):
             if not worker:  # N workers would say it N times
                 note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
             continue
@@ -369,6 +374,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
                 if not worker:  # sibling workers taking runs is expected; another command doing so is news
                     note(f"[dim]{index}/{len(plan)} {name}: in progress in another process, left to it[/]")
                 continue
+            overrides = run_overrides(config, model, run_dir)  # as the run is now that it is ours
             if run_done(run_dir, overrides):  # finished by another process between the check and the claim
                 continue
             note(f"[bold]{index}/{len(plan)} {name}[/]")
@@ -442,7 +448,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
     now gives them); one process at a time, so that both files always describe the same runs."""
     runs = [f"runs/{run_name(*key)}" for key in plan]
     with claim(out / ".index.lock", wait=True):
-        finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0]))]
+        finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r))]
         if finished:
             metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
                                 how="vertical_relaxed")

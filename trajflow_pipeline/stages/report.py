@@ -271,23 +271,39 @@ MEDIANS_WHY = (
     "(per-group) values below show the typical problem; the paper gives no medians to compare with.")
 
 
-def _median_blocks(dataset: str, runs: list[Run], medians: pl.DataFrame, median_folds: pl.DataFrame) -> list[Block]:
-    """The NLL medians of one dataset: a model table and, for folded data, per-fold tables (nothing without NLL)."""
-    stats = medians.filter(pl.col("dataset") == dataset)
-    if stats.is_empty():
+def _median_blocks(dataset: str, runs: list[Run], metrics: pl.DataFrame, medians: pl.DataFrame) -> list[Block]:
+    """The NLL medians of one dataset (`medians`: :func:`run_medians` of every run, `metrics`: the aggregates): a
+    model table and, for folded data, per-fold tables (nothing without NLL), with a note naming the runs that
+    report an NLL mean but no per-agent rows to take a median of."""
+    values = medians.filter(pl.col("dataset") == dataset)
+    if values.is_empty():
         return []
-    blocks: list[Block] = [Heading(3, "NLL medians"), Paragraph(MEDIANS_WHY),
-                           summary_table(stats, dataset, of=MEDIANS_OF, paper_row=False)]
+    stats = summary_stats(values)
+    blocks: list[Block] = [Heading(3, "NLL medians"), Paragraph(MEDIANS_WHY)]
+    missing = _without_medians(metrics.filter(pl.col("dataset") == dataset), values)
+    if missing:
+        them = "it" if len(missing) == 1 else "them"
+        blocks.append(Bullets((f"Note: no per-agent NLL rows to take medians of in {_plural(len(missing), 'run')} "
+                               f"({', '.join(missing)}); the medians below leave {them} out.",)))
+    blocks.append(summary_table(stats, dataset, of=MEDIANS_OF, paper_row=False))
     if any(r.fold is not None for r in runs):
-        for spec, table in fold_tables(median_folds.filter(pl.col("dataset") == dataset), of=MEDIANS_OF):
+        for spec, table in fold_tables(fold_stats(values), of=MEDIANS_OF):
             blocks += [Heading(4, f"{spec.label} median, per fold"), table]
     return blocks
 
 
+def _without_medians(metrics: pl.DataFrame, medians: pl.DataFrame) -> list[str]:
+    """Runs with an aggregate of a metric that other runs have medians of, but without a median of their own."""
+    reported = metrics.join(medians.select("metric").unique(), on="metric").select("run_index", "run", "metric")
+    covered = medians.select("run_index", "metric")
+    uncovered = reported.join(covered, on=["run_index", "metric"], how="anti")
+    return sorted(uncovered.get_column("run").unique().to_list())
+
+
 def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_fold: pl.DataFrame,
-                     medians: tuple[pl.DataFrame, pl.DataFrame], *, figures: bool, max_examples: int,
+                     values: tuple[pl.DataFrame, pl.DataFrame], *, figures: bool, max_examples: int,
                      progress: Progress) -> list[Block]:
-    """Tables, targets and figures of one dataset; `medians` are the NLL medians' summary and per-fold stats."""
+    """Tables, targets and figures of one dataset; `values` are every run's aggregates and NLL medians."""
     label = dataset_label(dataset)
     title = label if label == dataset else f"{label} (`{dataset}`)"
     stats = summary.filter(pl.col("dataset") == dataset)
@@ -306,7 +322,7 @@ def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_f
         blocks.append(Heading(3, "Per fold"))
         for spec, table in fold_tables(per_fold.filter(pl.col("dataset") == dataset)):
             blocks += [Heading(4, spec.label), table]
-    blocks += _median_blocks(dataset, runs, *medians)
+    blocks += _median_blocks(dataset, runs, *values)
     blocks += _compute(runs)
     if figures:
         blocks += _figures(dataset, runs, max_examples, progress)
@@ -440,14 +456,14 @@ def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool 
             progress.advance(task)
         metrics = metrics_frame(runs)
         summary, per_fold = summary_stats(metrics), fold_stats(metrics)
-        median_values = metrics_frame(runs, run_medians)
-        medians = summary_stats(median_values), fold_stats(median_values)
+        medians = metrics_frame(runs, run_medians)
         datasets = dataset_order([r.dataset for r in runs])
         blocks = _header(runs, inputs, resolved.experiments, resolved.notes, datasets, generated)
         sections = progress.add_task("building report", total=len(datasets))
         for dataset in datasets:
             blocks += _dataset_section(dataset, [r for r in runs if r.dataset == dataset], summary, per_fold,
-                                       medians, figures=figures, max_examples=max_examples, progress=progress)
+                                       (metrics, medians), figures=figures, max_examples=max_examples,
+                                       progress=progress)
             progress.advance(sections)
     blocks += _provenance(runs)
     pictures = [block for block in blocks if isinstance(block, Figure)]
@@ -457,7 +473,8 @@ def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool 
         "runs": [{"path": str(r.path), "run": r.name, "model": r.model, "dataset": r.dataset, "fold": r.fold,
                   "seed": r.seed} for r in runs],
         "summary": summary.rows(named=True), "per_fold": per_fold.rows(named=True),
-        "nll_medians": {"summary": medians[0].rows(named=True), "per_fold": medians[1].rows(named=True)},
+        "nll_medians": {"summary": summary_stats(medians).rows(named=True),
+                        "per_fold": fold_stats(medians).rows(named=True)},
         "figures": [figure.path for figure in pictures],
     }
     with atomic_directory(out) as tmp:

@@ -296,7 +296,7 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig, model: str, fold: str 
                  busy: bool | None) -> RunStatus:
     """The state of the run in `run_dir` from its files and its claim (`busy`), its progress and its times."""
     info = _read_json(run_dir / RUN_FILE)
-    overrides = run_overrides(config, model)
+    overrides = run_overrides(config, model, run_dir)
     if info is None:
         state = "training" if busy else "planned"
     elif info.get("status") != "finished":
