@@ -14,7 +14,7 @@ import polars as pl
 import pytest
 
 from test_eval_stage import write_tiny_experiment
-from trajflow_pipeline.stages.experiment import run_experiment
+from trajflow_pipeline.stages.experiment import plan_order, run_experiment
 from trajflow_pipeline.util.claim import claim
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="run claims need POSIX file locks")
@@ -114,3 +114,18 @@ def test_a_worker_ends_with_the_experiment_process_even_when_that_is_killed(tmp_
     while _alive(child) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not _alive(child), "an orphaned worker would keep its runs claimed"
+
+
+def test_the_closed_form_baseline_is_worked_on_first(tmp_path: Path) -> None:
+    """cv takes minutes where a trained model takes hours: its rows come first, for reports of unfinished work."""
+    assert plan_order(["trajflow", "flomo", "cv"], ["eth", "hotel"], [0]) == [
+        ("cv", "eth", 0), ("cv", "hotel", 0), ("trajflow", "eth", 0), ("trajflow", "hotel", 0),
+        ("flomo", "eth", 0), ("flomo", "hotel", 0)]
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae", "cv"], [0])
+    out = tmp_path / "exp"
+    with claim(out / "runs" / ".trajflow-no-ae-all-s0.lock") as mine:  # the trained run is busy elsewhere
+        assert mine
+        run_experiment(config, out, quiet=True)
+    index = json.loads((out / "experiment.json").read_text())
+    assert index["planned"] == ["runs/cv-all-s0", "runs/trajflow-no-ae-all-s0"]
+    assert index["runs"] == ["runs/cv-all-s0"]

@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.model.config import load_config
-from trajflow_pipeline.stages.status import StageProgress, experiment_status, parse_lock_table
+from trajflow_pipeline.stages.status import (ExperimentStatus, RunStatus, StageProgress, experiment_status,
+                                             parse_lock_table)
 from trajflow_pipeline.util.claim import claim
 
 BUDGET = ["train.ae_max_epochs=30", "train.ae_min_epochs=5", "train.ae_patience=4", "train.flow_max_epochs=8",
@@ -35,6 +36,12 @@ seeds = [0]
 set = {json.dumps(budget)}
 ''')
     return out
+
+
+def named(status: ExperimentStatus, *names: str) -> list[RunStatus]:
+    """The experiment's runs called `names`, in that order (KeyError for a run it does not plan)."""
+    runs = {run.name: run for run in status.runs}
+    return [runs[name] for name in names]
 
 
 def write_run(out: Path, name: str, *, status: str, log: list[tuple[str, int, float | None]],
@@ -73,8 +80,9 @@ def test_each_state_with_its_progress_and_the_time_its_stage_may_take(tmp_path: 
     write_run(out, "trajflow-hotel-s0", status="training", log=autoencoder_then_flow([-1.0, -3.0, -2.0]))
     write_run(out, "cv-eth-s0", status="finished", model="cv", log=[("fit", 1, None)])
     status = experiment_status(out)
-    assert [r.name for r in status.runs] == ["trajflow-eth-s0", "trajflow-hotel-s0", "cv-eth-s0", "cv-hotel-s0"]
-    done, interrupted, trained, planned = status.runs
+    # the closed-form baseline first (minutes, not hours), as the experiment works on them
+    assert [r.name for r in status.runs] == ["cv-eth-s0", "cv-hotel-s0", "trajflow-eth-s0", "trajflow-hotel-s0"]
+    trained, planned, done, interrupted = status.runs
     assert (done.state, done.metrics, done.eval_seconds, done.train_seconds) == (
         "done", {"min_ade": 0.25, "min_fde": 0.5}, 30.0, 32.0)
     assert done.progress == StageProgress(stage="flow", epoch=6, min_epochs=2, max_epochs=8, best_epoch=3,
@@ -84,7 +92,7 @@ def test_each_state_with_its_progress_and_the_time_its_stage_may_take(tmp_path: 
     # flow epoch 3 of at most 8; best at 2 with patience 3: early stopping can end it after epoch 5
     assert interrupted.progress is not None and interrupted.progress.epochs_left == (2, 5)
     assert (trained.state, planned.state, planned.progress, planned.train_seconds) == ("trained", "planned", None, 0)
-    assert status.to_dict()["runs"][1]["progress"]["epochs_left"] == (2, 5)
+    assert status.to_dict()["runs"][3]["progress"]["epochs_left"] == (2, 5)
 
 
 def test_the_epoch_range_follows_train_early_stopping() -> None:
@@ -110,7 +118,7 @@ def test_an_unfinished_run_whose_stage_ended_shows_the_next_stage(tmp_path: Path
     # autoencoder best at 7, patience 4, min 5: it stopped after epoch 11; the flow had not logged an epoch
     write_run(out, "trajflow-eth-s0", status="training",
               log=[("autoencoder", e, 1.0 / e if e <= 7 else 0.5) for e in range(1, 12)])
-    progress = experiment_status(out).runs[0].progress
+    progress = named(experiment_status(out), "trajflow-eth-s0")[0].progress
     assert progress == StageProgress(stage="flow", epoch=0, min_epochs=2, max_epochs=8, patience=3)
     assert progress.epochs_left == (3, 8)  # patience 3 counted from epoch 0
 
@@ -123,7 +131,7 @@ def test_the_budget_is_the_one_the_experiment_now_sets(tmp_path: Path) -> None:
     write_run(out, "trajflow-eth-s0", status="training", log=autoencoder_then_flow([-1.0, -2.0, -3.0]))
     write_run(out, "trajflow-hotel-s0", status="training", log=autoencoder_then_flow([-1.0, -2.0, -3.0]))
     with claim(out / "runs" / ".trajflow-hotel-s0.lock"):
-        interrupted, live = experiment_status(out).runs[:2]
+        interrupted, live = named(experiment_status(out), "trajflow-eth-s0", "trajflow-hotel-s0")
     assert interrupted.progress is not None and interrupted.progress.max_epochs == 40
     if sys.platform == "linux":
         assert live.state == "training" and live.progress is not None and live.progress.max_epochs == 8
@@ -147,9 +155,9 @@ def test_on_a_network_file_system_an_unclaimed_run_may_be_another_machines(tmp_p
     write_run(out, "trajflow-eth-s0", status="training", log=autoencoder_then_flow([-1.0]))
     monkeypatch.setattr(status_module, "_file_system_type", lambda path: "nfs4")
     monkeypatch.setattr(status_module, "_locked_inodes", lambda: set())
-    runs = experiment_status(out).runs
-    assert (runs[0].state, runs[0].busy) == ("training or interrupted", None)
-    assert (runs[1].state, runs[1].busy) == ("planned", None)
+    started, planned = named(experiment_status(out), "trajflow-eth-s0", "trajflow-hotel-s0")
+    assert (started.state, started.busy) == ("training or interrupted", None)
+    assert (planned.state, planned.busy) == ("planned", None)
 
 
 def test_evaluating_runs_show_no_patience_and_unreadable_runs_do_not_hide_the_others(tmp_path: Path) -> None:
@@ -160,7 +168,7 @@ def test_evaluating_runs_show_no_patience_and_unreadable_runs_do_not_hide_the_ot
     with claim(out / "runs" / ".trajflow-eth-s0.lock"):
         status = experiment_status(out)
         output = _cli_output(out)
-    evaluating, unreadable = status.runs[:2]
+    evaluating, unreadable = named(status, "trajflow-eth-s0", "trajflow-hotel-s0")
     assert evaluating.fits_saved is None                                        # no evaluation cache yet
     if sys.platform == "linux":
         assert evaluating.state == "evaluating"
@@ -182,10 +190,11 @@ def test_a_claimed_run_is_training_and_asking_never_takes_its_claim(tmp_path: Pa
     write_run(out, "trajflow-eth-s0", status="training", log=autoencoder_then_flow([]))
     with claim(out / "runs" / ".trajflow-eth-s0.lock") as mine, claim(out / "runs" / ".cv-hotel-s0.lock"):
         assert mine
-        runs = experiment_status(out).runs
-        assert (runs[0].state, runs[0].busy) == ("training", True)
-        assert (runs[3].state, runs[3].busy) == ("training", True)   # claimed, before its run.json exists
-        assert runs[1].busy is False
+        training, claimed, unclaimed = named(experiment_status(out), "trajflow-eth-s0", "cv-hotel-s0",
+                                             "trajflow-hotel-s0")
+        assert (training.state, training.busy) == ("training", True)
+        assert (claimed.state, claimed.busy) == ("training", True)   # claimed, before its run.json exists
+        assert unclaimed.busy is False
         with claim(out / "runs" / ".trajflow-eth-s0.lock") as again:  # held by us still: status did not touch it
             assert not again
 
@@ -194,7 +203,7 @@ def test_a_raised_budget_shows_until_the_run_follows_it(tmp_path: Path) -> None:
     raised = [b.replace("flow_max_epochs=8", "flow_max_epochs=12") for b in BUDGET]
     out = write_experiment(tmp_path / "exp", budget=raised)
     write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0] * 8), evaluated=True)
-    assert experiment_status(out).runs[0].state == "budget raised"
+    assert named(experiment_status(out), "trajflow-eth-s0")[0].state == "budget raised"
 
 
 def test_cli_table_json_and_errors(tmp_path: Path) -> None:
@@ -206,13 +215,13 @@ def test_cli_table_json_and_errors(tmp_path: Path) -> None:
     assert "trajflow-eth-s0" in result.output and "0.250/0.500" in result.output and "flow: 2/8" in result.output
     assert "4 runs: 3 planned, 1 done" in result.output
     as_json = json.loads(runner.invoke(app, ["status", str(out), "--json"]).stdout)
-    assert [r["state"] for r in as_json["runs"]] == ["done", "planned", "planned", "planned"]
+    assert [r["state"] for r in as_json["runs"]] == ["planned", "planned", "done", "planned"]
     missing = runner.invoke(app, ["status", str(tmp_path / "nothing")])
     assert missing.exit_code != 0 and "not an experiment directory" in missing.output
     with pytest.raises(UsageError, match="not an experiment directory"):
         experiment_status(tmp_path)
     (out / "runs" / "trajflow-eth-s0" / "run.json").write_text("{broken")
-    broken = experiment_status(out).runs[0]
+    broken, = named(experiment_status(out), "trajflow-eth-s0")
     assert broken.state == "unreadable" and re.search(r"run\.json.*unreadable", broken.problem or "")
 
 
@@ -222,7 +231,7 @@ def test_folds_come_from_the_run_directories_when_the_dataset_is_not_here(tmp_pa
     (out / "config.toml").write_text(text)
     write_run(out, "trajflow-zara1-s0", status="training", log=autoencoder_then_flow([]))
     status = experiment_status(out)
-    assert [r.name for r in status.runs] == ["trajflow-zara1-s0", "cv-zara1-s0"]
+    assert [r.name for r in status.runs] == ["cv-zara1-s0", "trajflow-zara1-s0"]
     assert status.note is not None and "was not found from here" in status.note
 
 
@@ -238,6 +247,6 @@ def test_an_evaluation_in_progress_shows_its_saved_fits(tmp_path: Path) -> None:
     cache = RomeCache(run / "eval-cache", tasks, base_seed=0, patched=True)
     cache.save([(i, ((np.full(1, -1.0),), 0)) for i in range(3)])
     cache.save([(1, ((np.full(1, -1.0),), 0))])                                # saved twice counts once
-    status = experiment_status(out)
-    assert (status.runs[0].state, status.runs[0].fits_saved) == ("trained", (3, 5))
+    evaluating, = named(experiment_status(out), "trajflow-eth-s0")
+    assert (evaluating.state, evaluating.fits_saved) == ("trained", (3, 5))
     assert "eval: 3/5 fits saved" in _cli_output(out)

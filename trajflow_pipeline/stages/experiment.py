@@ -28,6 +28,9 @@ in ``[train] set`` or ``[models.*] set``; comments, name and description are fre
 then continue from their last epoch (see :mod:`trajflow_pipeline.stages.train`) and are evaluated again.
 ``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
 
+Runs are worked on model by model, the models fitted in closed form (the constant-velocity baseline) first: they
+take minutes where a trained model takes hours, so a report of an unfinished experiment has its reference rows.
+
 Several processes can work on one experiment directory: ``--jobs N`` starts N workers, and the same command may
 also be started again (another terminal, another node on a shared file system). Each run is claimed by one
 process (an OS file lock in ``EXP/runs/.<run>.lock``, released when its holder exits, however it exits); the
@@ -56,6 +59,7 @@ from ..data import list_folds
 from ..errors import TrajflowError, UsageError
 from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, RunConfig, load_config
+from ..model.models import MODEL_CLASSES
 from ..schemas import open_dataset
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
@@ -308,9 +312,22 @@ def _run_config(config: ExperimentConfig, model: str) -> RunConfig:
 
 
 def _plan(config: ExperimentConfig, data: Path) -> list[tuple[str, str | None, int]]:
-    """(model, fold, seed) of every run, in the order they are worked on: model by model."""
-    folds = _folds(config, data)
-    return [(m, f, s) for m in config.models for f in folds for s in config.seeds]
+    """(model, fold, seed) of every run, in the order they are worked on (see `plan_order`)."""
+    return plan_order(config.models, _folds(config, data), config.seeds)
+
+
+def fitted_in_closed_form(model: str) -> bool:
+    """Whether every training stage of `model` is a closed-form fit (no gradient descent: minutes, not hours)."""
+    family = MODEL_CLASSES[model]
+    return set(family.stages) <= set(family.closed_form_stages)
+
+
+def plan_order(models: list[str], folds: list[str | None], seeds: list[int]) -> list[tuple[str, str | None, int]]:
+    """(model, fold, seed) of every run, model by model: those fitted in closed form first, so that their rows (the
+    baselines every table compares against) exist long before the trained models are done; otherwise the config's
+    order."""
+    ordered = sorted(models, key=lambda m: not fitted_in_closed_form(m))  # stable: the config's order otherwise
+    return [(m, f, s) for m in ordered for f in folds for s in seeds]
 
 
 def run_evaluated(run_dir: Path) -> bool:

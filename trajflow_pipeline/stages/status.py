@@ -31,7 +31,8 @@ from ..model.config import RunConfig, load_config
 from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
 from .evaluate import EVAL_DIR, ROME_CACHE_DIR
-from .experiment import ExperimentConfig, load_experiment, run_done, run_evaluated, run_name, run_overrides
+from .experiment import (ExperimentConfig, load_experiment, plan_order, run_done, run_evaluated, run_name,
+                         run_overrides)
 from .train import CONFIG_FILE, LOG_FILE, RUN_FILE
 
 #: the epoch budget keys of each gradient stage (train.<prefix>_min_epochs, _max_epochs, _patience)
@@ -164,7 +165,7 @@ def _planned(out: Path, config: ExperimentConfig) -> tuple[list[tuple[str, str |
         folds = _folds_from_names(names, config)
         note = (f"the dataset ({config.data_path}) was not found from here, so the folds are those of the runs "
                 "started so far; run this from where the experiment was started to see every planned run")
-    return [(m, f, s) for m in config.models for f in folds for s in config.seeds], note
+    return plan_order(config.models, folds, config.seeds), note
 
 
 def _index(out: Path) -> dict[str, Any]:
