@@ -129,3 +129,5 @@ def test_the_closed_form_baseline_is_worked_on_first(tmp_path: Path) -> None:
     index = json.loads((out / "experiment.json").read_text())
     assert index["planned"] == ["runs/cv-all-s0", "runs/trajflow-no-ae-all-s0"]
     assert index["runs"] == ["runs/cv-all-s0"]
+    assert index["plan"] == [{"run": "runs/cv-all-s0", "model": "cv", "fold": None, "seed": 0},
+                             {"run": "runs/trajflow-no-ae-all-s0", "model": "trajflow-no-ae", "fold": None, "seed": 0}]

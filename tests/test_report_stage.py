@@ -303,6 +303,29 @@ def test_experiment_with_unfinished_runs_and_duplicates(tmp_path: Path) -> None:
     assert "1 of 2 planned runs are finished" in markdown
     assert "TrajFlow fold 0 seed 0 appears in 2 runs" in markdown
     assert _table_row(_section(markdown, "Forking Paths"), "TrajFlow")[1] == "2"
+    # a manifest from before the structured plan: coverage is judged on the runs alone
+    assert "Not every model has runs" not in markdown
+
+
+def test_a_report_of_unfinished_work_names_the_missing_folds_and_judges_no_target(tmp_path: Path) -> None:
+    experiment = write_experiment(tmp_path / "exp", "eth_ucy", models=("cv", "trajflow"), folds=("eth", "hotel"),
+                                  seeds=(0,))
+    manifest = json.loads((experiment / "experiment.json").read_text())
+    manifest["runs"] = [r for r in manifest["runs"] if r != "runs/trajflow-hotel-s0"]
+    manifest["plan"] = [{"run": f"runs/{m}-{f}-s0", "model": m, "fold": f, "seed": 0}
+                        for m in ("cv", "trajflow") for f in ("eth", "hotel", "zara1")]
+    (experiment / "experiment.json").write_text(json.dumps(manifest))
+    markdown = (report([experiment], tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
+    section = _section(markdown, "ETH/UCY")
+    assert ("Not every model has runs on all 3 folds yet: TrajFlow has none on folds hotel, zara1; Constant "
+            "velocity has none on fold zara1.") in section
+    assert "minADE: NOT CHECKED — no TrajFlow run on folds hotel, zara1 yet" in section
+    assert "MET" not in section.replace("NOT CHECKED", "")
+    assert "(on fold eth, the only one both have runs on)" in section
+    manifest["plan"] = [{"run": "runs/x", "model": "cv", "fold": 3, "seed": 0}]
+    (experiment / "experiment.json").write_text(json.dumps(manifest))
+    with pytest.raises(DataError, match=r"experiment\.json.*`plan`"):
+        report([experiment], tmp_path / "rep2", quiet=True, figures=False)
 
 
 def test_parquet_training_log_without_validation(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from trajflow_pipeline.report.figures import kde_colours, plot_min_ade_k, relati
 from trajflow_pipeline.report.paper import METRICS, metric_columns
 from trajflow_pipeline.report.render import to_html, to_markdown
 from trajflow_pipeline.report.scenes import choose_examples
-from trajflow_pipeline.report.tables import comparisons, format_mean_std, summary_stats
+from trajflow_pipeline.report.tables import comparisons, fold_stats, format_mean_std, summary_stats, targets
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -102,7 +102,8 @@ def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
     metrics = pl.DataFrame(
         [{"dataset": "synthetic_bimodal", "model": model, "run": f"{model}-s{seed}", "metric": metric, "value": value}
          for (model, seed), values in runs.items() for metric, value in zip(("nll", "jsd", "min_ade"), values)])
-    lines = comparisons(summary_stats(metrics))
+    metrics = metrics.with_columns(fold=pl.lit(None, pl.String))
+    lines = comparisons(summary_stats(metrics), fold_stats(metrics))
     # TrajFlow's means: NLL -40.0, JSD 0.30 (minADE is not a claimed metric, so it is not compared).
     assert lines == [
         "NLL indep vs TrajFlow w/o AE: NOT BETTER — our TrajFlow -40.00, TrajFlow w/o AE -41.50.",
@@ -112,7 +113,26 @@ def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
         "NLL indep vs Constant velocity: BETTER — our TrajFlow -40.00, Constant velocity 16.00.",
         "JSD vs Constant velocity: BETTER — our TrajFlow 0.300, Constant velocity 1.000.",
     ]
-    assert comparisons(summary_stats(metrics.filter(pl.col("model") == "flomo"))) == []
+    flomo = metrics.filter(pl.col("model") == "flomo")
+    assert comparisons(summary_stats(flomo), fold_stats(flomo)) == []
+
+
+def test_models_with_different_folds_are_compared_on_the_shared_ones_and_targets_wait_for_every_fold() -> None:
+    values = {("trajflow", "eth"): -1.0, ("trajflow", "hotel"): -26.0, ("trajflow", "univ"): -22.0,
+              ("cv", "eth"): 10.0, ("cv", "hotel"): 50.0, ("flomo", "zara1"): -30.0}
+    metrics = pl.DataFrame([{"dataset": "eth_ucy", "model": model, "run": f"{model}-{fold}-s0", "fold": fold,
+                             "seed": 0, "metric": "nll", "value": value} for (model, fold), value in values.items()])
+    stats, per_fold = summary_stats(metrics), fold_stats(metrics)
+    # TrajFlow's eth + hotel mean is -13.5 (its mean over its three folds, -16.33, is not comparable); FloMo shares
+    # no fold with it and is left out.
+    assert comparisons(stats, per_fold) == [
+        "NLL indep vs Constant velocity: BETTER — our TrajFlow -13.50, Constant velocity 30.00 (on folds eth, "
+        "hotel, the only ones both have runs on).",
+    ]
+    assert targets(stats, "eth_ucy", ["zara1", "zara2"])[2] == (
+        "NLL indep: NOT CHECKED — no TrajFlow run on folds zara1, zara2 yet; our TrajFlow -16.33 over the other "
+        "folds, paper -21.05 over all of them.")
+    assert targets(stats, "eth_ucy")[2] == "NLL indep: NOT MET — our TrajFlow -16.33 > paper -21.05."
 
 
 def test_provenance_names_the_code_that_trained_and_evaluated_a_run() -> None:

@@ -12,7 +12,7 @@ import json
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import polars as pl
 
@@ -75,13 +75,24 @@ class Run:
         return f"fold {self.fold}, seed {self.seed}" if self.fold is not None else f"seed {self.seed}"
 
 
+class PlannedRun(NamedTuple):
+    """One run an experiment plans (experiment.json `plan`), finished or not."""
+
+    experiment: str
+    model: str
+    fold: str | None
+    seed: int
+
+
 @dataclass(frozen=True)
 class Inputs:
-    """The resolved inputs: run directories in order (each with the experiment that listed it) and notes."""
+    """The resolved inputs: run directories in order (each with the experiment that listed it), notes, and the
+    runs the experiments plan: (experiment, model, fold, seed), finished or not."""
 
     runs: tuple[tuple[Path, str | None], ...]
     experiments: tuple[str, ...]
     notes: tuple[str, ...]
+    planned: tuple[PlannedRun, ...] = ()
 
 
 def _looks_like_run(path: Path) -> bool:
@@ -112,14 +123,26 @@ def read_json(path: Path) -> dict[str, Any]:
     return value
 
 
-def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None]:
-    """The run directories an experiment lists, its name, and a note on planned runs that are not finished."""
+def _plan(manifest: dict[str, Any], name: str, manifest_path: Path) -> list[PlannedRun]:
+    """The runs an experiment plans, from its manifest's `plan` (empty for manifests written before it existed)."""
+    plan = manifest.get("plan", [])
+    if not isinstance(plan, list) or not all(
+            isinstance(row, dict) and isinstance(row.get("model"), str) and isinstance(row.get("seed"), int)
+            and (row.get("fold") is None or isinstance(row.get("fold"), str)) for row in plan):
+        raise DataError("`plan` must be a list of {run, model, fold, seed} objects", manifest_path)
+    return [PlannedRun(name, row["model"], row.get("fold"), row["seed"]) for row in plan]
+
+
+def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None, list[PlannedRun]]:
+    """The run directories an experiment lists, its name, a note on planned runs that are not finished, and its
+    plan."""
     manifest_path = path / EXPERIMENT_FILE
     manifest = read_json(manifest_path)
     runs = manifest.get("runs")
     if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs):
         raise DataError("`runs` must be a list of run paths relative to the experiment", manifest_path)
     name = str(manifest.get("name", path.name))
+    plan = _plan(manifest, name, manifest_path)
     planned = manifest.get("planned")
     note = None
     if isinstance(planned, list) and len(planned) > len(runs):
@@ -127,7 +150,7 @@ def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None]:
                 f"the finished ones")
     if not runs:
         raise TrajflowError(f"{path}: the experiment lists no finished runs yet; run `trajflow experiment` first")
-    return [path / r for r in runs], name, note
+    return [path / r for r in runs], name, note, plan
 
 
 def resolve_inputs(inputs: Iterable[str | Path]) -> Inputs:
@@ -135,6 +158,7 @@ def resolve_inputs(inputs: Iterable[str | Path]) -> Inputs:
     runs: list[tuple[Path, str | None]] = []
     experiments: list[str] = []
     notes: list[str] = []
+    planned: list[PlannedRun] = []
     seen: set[Path] = set()
     for raw in inputs:
         path = Path(raw)
@@ -143,9 +167,10 @@ def resolve_inputs(inputs: Iterable[str | Path]) -> Inputs:
         if not path.is_dir():
             raise TrajflowError(f"{path}: not a directory (expected a run or an experiment directory)")
         if (path / EXPERIMENT_FILE).is_file():
-            members, name, note = _experiment_runs(path)
+            members, name, note, plan = _experiment_runs(path)
             experiments.append(name)
             notes.extend([note] if note else [])
+            planned.extend(plan)
         else:
             members, name = [path], None
         for member in members:
@@ -156,7 +181,7 @@ def resolve_inputs(inputs: Iterable[str | Path]) -> Inputs:
                 runs.append((member, name))
     if not runs:
         raise TrajflowError("no runs given: pass run or experiment directories")
-    return Inputs(tuple(runs), tuple(experiments), tuple(notes))
+    return Inputs(tuple(runs), tuple(experiments), tuple(notes), tuple(planned))
 
 
 def load_run(path: Path, experiment: str | None = None) -> Run:

@@ -9,6 +9,7 @@ folds is usually reported); a single run shows its value without ± part. Every 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import polars as pl
 
@@ -136,14 +137,32 @@ def fold_tables(stats: pl.DataFrame, of: str = "") -> list[tuple[MetricSpec, Tab
     return tables
 
 
-def targets(stats: pl.DataFrame, dataset: str) -> list[str]:
-    """Plain sentences: does our TrajFlow mean meet (≤) the paper's value, metric by metric?"""
+def model_folds(per_fold: pl.DataFrame) -> dict[str, set[str | None]]:
+    """The folds each model has evaluated runs on; `per_fold` is :func:`fold_stats` restricted to one dataset."""
+    return {str(model): set(part.get_column("fold").to_list()) for (model,), part in per_fold.group_by("model")}
+
+
+def fold_list(folds: Iterable[str | None]) -> str:
+    """`fold zara2`, `folds univ, zara2` (no fold: the test set)."""
+    names = sorted(f for f in folds if f is not None)
+    if not names:
+        return "the test set"
+    return f"fold{'s' if len(names) > 1 else ''} {', '.join(names)}"
+
+
+def targets(stats: pl.DataFrame, dataset: str, missing: Iterable[str | None] = ()) -> list[str]:
+    """Plain sentences: does our TrajFlow mean meet (≤) the paper's value, metric by metric?
+
+    The paper's values are means over every fold: with folds `missing` (planned, or evaluated for another model,
+    but without a TrajFlow run) a mean over the others is shown and not judged.
+    """
     paper = PAPER_TRAJFLOW.get(dataset)
     if paper is None:
         return [f"The paper reports no TrajFlow results for `{dataset}`; no targets to check."]
     ours = dict(stats.filter(pl.col("model") == OUR_TRAJFLOW).select("metric", "mean").iter_rows())
     if not ours:
         return ["No TrajFlow (`trajflow`) runs for this dataset; the paper targets were not checked."]
+    missing = list(missing)
     lines = []
     for spec in metric_columns(list(paper)):
         if spec.name not in paper:
@@ -151,6 +170,9 @@ def targets(stats: pl.DataFrame, dataset: str) -> list[str]:
         target, value = paper[spec.name], ours.get(spec.name)
         if value is None:
             lines.append(f"{spec.label}: not evaluated (paper {target:g}).")
+        elif missing:
+            lines.append(f"{spec.label}: NOT CHECKED — no TrajFlow run on {fold_list(missing)} yet; our TrajFlow "
+                         f"{value:.4g} over the other folds, paper {target:g} over all of them.")
         elif math.isfinite(value) and value <= target:
             lines.append(f"{spec.label}: MET — our TrajFlow {value:.4g} ≤ paper {target:g}.")
         elif not math.isfinite(value):
@@ -164,21 +186,41 @@ def targets(stats: pl.DataFrame, dataset: str) -> list[str]:
 CLAIMED_BETTER_ON = ("nll", "jsd")
 
 
-def comparisons(stats: pl.DataFrame) -> list[str]:
+def _means_on(per_fold: pl.DataFrame, model: str, metric: str, folds: set[str | None]) -> float | None:
+    """A model's mean over `folds` of its per-fold means (over seeds) of `metric`."""
+    part = per_fold.filter((pl.col("model") == model) & (pl.col("metric") == metric))
+    values = [row["mean"] for row in part.iter_rows(named=True) if row["fold"] in folds]
+    return sum(values) / len(values) if len(values) == len(folds) else None
+
+
+def comparisons(stats: pl.DataFrame, per_fold: pl.DataFrame) -> list[str]:
     """Plain sentences: is our TrajFlow mean better (lower) than each other model's, on each metric the paper
-    claims it is (NLL, JSD) and both were evaluated on? `stats` is :func:`summary_stats` for one dataset."""
+    claims it is (NLL, JSD) and both were evaluated on? `stats` and `per_fold` are :func:`summary_stats` and
+    :func:`fold_stats` for one dataset. Where the two models' runs cover different folds, both are compared on
+    the folds they share (a mean over other folds is not comparable), and the sentence says which."""
     mean = _pivot(stats, "model", "mean")
+    folds = model_folds(per_fold)
     others = [m for m in model_order(stats.get_column("model").to_list()) if m != OUR_TRAJFLOW]
     specs = [spec for spec in metric_columns(stats.get_column("metric").to_list()) if spec.name in CLAIMED_BETTER_ON]
     lines = []
     for other in others:
+        ours_folds, their_folds = folds.get(OUR_TRAJFLOW, set()), folds.get(other, set())
+        shared = ours_folds & their_folds
         for spec in specs:
             ours, theirs = mean.get((OUR_TRAJFLOW, spec.name)), mean.get((other, spec.name))
-            if ours is None or theirs is None:
+            if ours is None or theirs is None or not shared:
                 continue
+            where = ""
+            if shared != ours_folds or shared != their_folds:
+                ours = _means_on(per_fold, OUR_TRAJFLOW, spec.name, shared)
+                theirs = _means_on(per_fold, other, spec.name, shared)
+                if ours is None or theirs is None:
+                    continue
+                only = "the only one" if len(shared) == 1 else "the only ones"
+                where = f" (on {fold_list(shared)}, {only} both have runs on)"
             better = math.isfinite(ours) and (not math.isfinite(theirs) or ours < theirs)
             verdict = "BETTER" if better else "NOT BETTER"
             lines.append(f"{spec.label} vs {model_label(other)}: {verdict} — our TrajFlow "
                          f"{format_value(ours, spec.decimals)}, {model_label(other)} "
-                         f"{format_value(theirs, spec.decimals)}.")
+                         f"{format_value(theirs, spec.decimals)}{where}.")
     return lines

@@ -462,7 +462,9 @@ def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, q
 
 def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tuple[str, str | None, int]]) -> None:
     """experiment.json and the concatenated metrics of the runs finished so far (with the config the experiment
-    now gives them); one process at a time, so that both files always describe the same runs."""
+    now gives them); one process at a time, so that both files always describe the same runs. experiment.json's
+    `plan` gives every planned run's model, fold and seed, so that a report of unfinished work knows what is
+    missing."""
     runs = [f"runs/{run_name(*key)}" for key in plan]
     with claim(out / ".index.lock", wait=True):
         finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r))]
@@ -471,8 +473,10 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
                                 how="vertical_relaxed")
             with atomic_file(out / "metrics.parquet") as tmp:
                 metrics.write_parquet(tmp)
+        plan_rows = [{"run": r, "model": model, "fold": fold, "seed": seed}
+                     for r, (model, fold, seed) in zip(runs, plan)]
         atomic_write_text(out / "experiment.json", json.dumps(
-            {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs,
+            {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs, "plan": plan_rows,
              "config": config.source}, indent=2, default=str) + "\n")
 
 

@@ -30,15 +30,16 @@ from rich.progress import Progress
 from .. import __version__
 from ..errors import TrajflowError, UsageError
 from ..model.config import RunConfig
-from ..report.collect import (Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs, run_medians,
-                              scan_ground_truth, scan_predictions, training_seconds)
+from ..report.collect import (PlannedRun, Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs,
+                              run_medians, scan_ground_truth, scan_predictions, training_seconds)
 from ..report.curves import min_ade_curve
 from ..report.document import Block, Bullets, Cell, Code, Figure, Heading, Paragraph, Table
 from ..report.figures import plot_density, plot_examples, plot_min_ade_k, plot_training
-from ..report.paper import dataset_label, dataset_order, model_label, model_order
+from ..report.paper import OUR_TRAJFLOW, dataset_label, dataset_order, model_label, model_order
 from ..report.render import slug, to_html, to_markdown
 from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
-from ..report.tables import comparisons, fold_stats, fold_tables, summary_stats, summary_table, targets
+from ..report.tables import (comparisons, fold_list, fold_stats, fold_tables, model_folds, summary_stats,
+                             summary_table, targets)
 from ..util.atomic import atomic_directory
 from ..util.progress import duration_text, make_progress
 
@@ -300,27 +301,47 @@ def _without_medians(metrics: pl.DataFrame, medians: pl.DataFrame) -> list[str]:
     return sorted(uncovered.get_column("run").unique().to_list())
 
 
+def _expected_folds(runs: list[Run], planned: tuple[PlannedRun, ...]) -> set[str | None]:
+    """The folds a dataset section should cover: those of its runs and those the experiments listing them plan."""
+    experiments = {r.experiment for r in runs if r.experiment is not None}
+    return {r.fold for r in runs} | {p.fold for p in planned if p.experiment in experiments}
+
+
+def _coverage_note(expected: set[str | None], folds: dict[str, set[str | None]]) -> list[str]:
+    """A note naming the models whose runs leave out some of the section's folds (their means are over fewer)."""
+    short = [f"{model_label(m)} has none on {fold_list(expected - folds[m])}" for m in model_order(list(folds))
+             if expected - folds[m]]
+    if not short:
+        return []
+    return [f"Not every model has runs on all {len(expected)} folds yet: {'; '.join(short)}. A mean over fewer "
+            "folds is not comparable with the paper's or another model's: the targets below are not judged for "
+            "TrajFlow until it has every fold, and comparisons use the folds both models have."]
+
+
 def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_fold: pl.DataFrame,
-                     values: tuple[pl.DataFrame, pl.DataFrame], *, figures: bool, max_examples: int,
-                     progress: Progress) -> list[Block]:
-    """Tables, targets and figures of one dataset; `values` are every run's aggregates and NLL medians."""
+                     values: tuple[pl.DataFrame, pl.DataFrame], planned: tuple[PlannedRun, ...], *, figures: bool,
+                     max_examples: int, progress: Progress) -> list[Block]:
+    """Tables, targets and figures of one dataset; `values` are every run's aggregates and NLL medians, `planned`
+    the runs the experiments plan (finished or not)."""
     label = dataset_label(dataset)
     title = label if label == dataset else f"{label} (`{dataset}`)"
     stats = summary.filter(pl.col("dataset") == dataset)
+    folds_stats = per_fold.filter(pl.col("dataset") == dataset)
+    expected, folds = _expected_folds(runs, planned), model_folds(folds_stats)
     blocks: list[Block] = [Heading(2, title, anchor=slug(dataset)), Paragraph(_describe(runs))]
-    notes = _consistency_notes(runs) + _paper_deviations(runs)
+    notes = _consistency_notes(runs) + _paper_deviations(runs) + _coverage_note(expected, folds)
     if notes:
         blocks.append(Bullets(tuple(f"Note: {n}" for n in notes)))
     blocks += [Heading(3, "Results"), summary_table(stats, dataset, _common([r.k for r in runs])),
                Heading(3, "Paper targets (our TrajFlow mean vs the paper's, lower is better)"),
-               Bullets(tuple(targets(stats, dataset)))]
-    versus = comparisons(stats)
+               Bullets(tuple(targets(stats, dataset, expected - folds.get(OUR_TRAJFLOW, set()))))]
+    versus = comparisons(stats, folds_stats)
     if versus:
         blocks += [Heading(3, "TrajFlow against our other models (the paper claims better NLL and JSD)"),
                    Bullets(tuple(versus))]
     if any(r.fold is not None for r in runs):
         blocks.append(Heading(3, "Per fold"))
-        for spec, table in fold_tables(per_fold.filter(pl.col("dataset") == dataset)):
+        for spec, table in fold_tables(folds_stats):
             blocks += [Heading(4, spec.label), table]
     blocks += _median_blocks(dataset, runs, *values)
     blocks += _compute(runs)
@@ -462,8 +483,8 @@ def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool 
         sections = progress.add_task("building report", total=len(datasets))
         for dataset in datasets:
             blocks += _dataset_section(dataset, [r for r in runs if r.dataset == dataset], summary, per_fold,
-                                       (metrics, medians), figures=figures, max_examples=max_examples,
-                                       progress=progress)
+                                       (metrics, medians), resolved.planned, figures=figures,
+                                       max_examples=max_examples, progress=progress)
             progress.advance(sections)
     blocks += _provenance(runs)
     pictures = [block for block in blocks if isinstance(block, Figure)]
