@@ -320,6 +320,8 @@ def test_a_report_of_unfinished_work_names_the_missing_folds_and_judges_no_targe
     assert ("Not every model has runs on all 3 folds yet: TrajFlow has none on folds hotel, zara1; Constant "
             "velocity has none on fold zara1.") in section
     assert "minADE: NOT CHECKED — no TrajFlow run on folds hotel, zara1 yet" in section
+    assert ("3 of 6 planned runs are finished; the report shows the finished ones (not yet: TrajFlow, 2 runs; "
+            "Constant velocity, 1 run)") in markdown
     assert "MET" not in section.replace("NOT CHECKED", "")
     assert "(on fold eth, the only one both have runs on)" in section
     manifest["plan"] = [{"run": "runs/x", "model": "cv", "fold": 3, "seed": 0}]

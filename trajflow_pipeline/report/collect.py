@@ -9,6 +9,7 @@ lists its finished runs relative to it. Every problem becomes one line naming th
 from __future__ import annotations
 
 import json
+from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +18,7 @@ from typing import Any, NamedTuple
 import polars as pl
 
 from ..errors import DataError, TrajflowError
-from .paper import UNBOUNDED_PREFIX
+from .paper import UNBOUNDED_PREFIX, model_label, model_order
 
 EVAL_DIR = "eval"
 EXPERIMENT_FILE = "experiment.json"
@@ -79,6 +80,7 @@ class PlannedRun(NamedTuple):
     """One run an experiment plans (experiment.json `plan`), finished or not."""
 
     experiment: str
+    run: str             # its directory, relative to the experiment's
     model: str
     fold: str | None
     seed: int
@@ -87,7 +89,7 @@ class PlannedRun(NamedTuple):
 @dataclass(frozen=True)
 class Inputs:
     """The resolved inputs: run directories in order (each with the experiment that listed it), notes, and the
-    runs the experiments plan: (experiment, model, fold, seed), finished or not."""
+    runs the experiments plan, finished or not."""
 
     runs: tuple[tuple[Path, str | None], ...]
     experiments: tuple[str, ...]
@@ -127,10 +129,23 @@ def _plan(manifest: dict[str, Any], name: str, manifest_path: Path) -> list[Plan
     """The runs an experiment plans, from its manifest's `plan` (empty for manifests written before it existed)."""
     plan = manifest.get("plan", [])
     if not isinstance(plan, list) or not all(
-            isinstance(row, dict) and isinstance(row.get("model"), str) and isinstance(row.get("seed"), int)
-            and (row.get("fold") is None or isinstance(row.get("fold"), str)) for row in plan):
+            isinstance(row, dict) and isinstance(row.get("run"), str) and isinstance(row.get("model"), str)
+            and isinstance(row.get("seed"), int) and (row.get("fold") is None or isinstance(row.get("fold"), str))
+            for row in plan):
         raise DataError("`plan` must be a list of {run, model, fold, seed} objects", manifest_path)
-    return [PlannedRun(name, row["model"], row.get("fold"), row["seed"]) for row in plan]
+    return [PlannedRun(name, row["run"], row["model"], row.get("fold"), row["seed"]) for row in plan]
+
+
+def _unfinished(plan: list[PlannedRun], finished: list[str]) -> str:
+    """` (not yet: FloMo, 5 runs; ...)`: the planned runs missing from `finished`, per model (empty without a
+    plan)."""
+    done = set(finished)
+    missing = Counter(p.model for p in plan if p.run not in done)
+    if not missing:
+        return ""
+    parts = [f"{model_label(m)}, {n} run{'s' if n > 1 else ''}" for m in model_order(list(missing))
+             for n in [missing[m]]]
+    return f" (not yet: {'; '.join(parts)})"
 
 
 def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None, list[PlannedRun]]:
@@ -143,11 +158,11 @@ def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None, list[Plan
         raise DataError("`runs` must be a list of run paths relative to the experiment", manifest_path)
     name = str(manifest.get("name", path.name))
     plan = _plan(manifest, name, manifest_path)
-    planned = manifest.get("planned")
+    planned = [p.run for p in plan] or manifest.get("planned")
     note = None
     if isinstance(planned, list) and len(planned) > len(runs):
         note = (f"experiment {name}: {len(runs)} of {len(planned)} planned runs are finished; the report shows "
-                f"the finished ones")
+                f"the finished ones{_unfinished(plan, runs)}")
     if not runs:
         raise TrajflowError(f"{path}: the experiment lists no finished runs yet; run `trajflow experiment` first")
     return [path / r for r in runs], name, note, plan
