@@ -17,7 +17,7 @@ import polars as pl
 import pytest
 
 from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
-from trajflow_pipeline.stages.report import report
+from trajflow_pipeline.stages.report import FIGURE_DIR, report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 METRICS = ("min_ade", "min_fde", "min_ade_joint", "min_fde_joint", "nll", "nll_joint", "jsd")
@@ -290,6 +290,20 @@ def test_output_guards(tmp_path: Path) -> None:
         report([run], tmp_path / "rep", quiet=True, max_examples=-1)
 
 
+def test_a_regenerated_report_keeps_the_files_beside_it(tmp_path: Path) -> None:
+    run = write_run(tmp_path / "runs", model="trajflow", dataset="eth_ucy", fold="eth", seed=0)
+    out = report([run], tmp_path / "rep", quiet=True)
+    (out / "config.toml").write_text("name = 'x'\n")
+    (out / "models" / "trajflow-eth-s0" / "final").mkdir(parents=True)
+    (out / "models" / "trajflow-eth-s0" / "final" / "model.safetensors").write_bytes(b"weights")
+    (out / FIGURE_DIR / "stale.png").write_bytes(b"old figure")
+    report([run], out, quiet=True)
+    assert (out / "config.toml").read_text() == "name = 'x'\n"
+    assert (out / "models" / "trajflow-eth-s0" / "final" / "model.safetensors").read_bytes() == b"weights"
+    assert not (out / FIGURE_DIR / "stale.png").exists()           # the figures are the report's own
+    assert (out / "report.md").is_file() and not list(tmp_path.glob(".rep.*"))
+
+
 def test_experiment_with_unfinished_runs_and_duplicates(tmp_path: Path) -> None:
     experiment = write_experiment(tmp_path / "exp", "forking_paths", models=("trajflow",), folds=("0",),
                                   seeds=(0,))
@@ -303,31 +317,57 @@ def test_experiment_with_unfinished_runs_and_duplicates(tmp_path: Path) -> None:
     assert "1 of 2 planned runs are finished" in markdown
     assert "TrajFlow fold 0 seed 0 appears in 2 runs" in markdown
     assert _table_row(_section(markdown, "Forking Paths"), "TrajFlow")[1] == "2"
-    # a manifest from before the structured plan: coverage is judged on the runs alone
-    assert "Not every model has runs" not in markdown
+
+
+def _with_plan(experiment: Path, models: tuple[str, ...], folds: tuple[str | None, ...], *,
+               unfinished: tuple[str, ...] = (), name: str | None = None) -> None:
+    """Give an experiment's manifest a plan (seed 0) and drop the runs `unfinished` from its finished ones."""
+    manifest = json.loads((experiment / "experiment.json").read_text())
+    manifest["runs"] = [r for r in manifest["runs"] if r not in unfinished]
+    manifest["plan"] = [{"run": f"runs/{m}-{f or 'all'}-s0", "model": m, "fold": f, "seed": 0}
+                        for m in models for f in folds]
+    manifest["planned"] = [row["run"] for row in manifest["plan"]]
+    manifest["name"] = name or manifest["name"]
+    (experiment / "experiment.json").write_text(json.dumps(manifest))
 
 
 def test_a_report_of_unfinished_work_names_the_missing_folds_and_judges_no_target(tmp_path: Path) -> None:
     experiment = write_experiment(tmp_path / "exp", "eth_ucy", models=("cv", "trajflow"), folds=("eth", "hotel"),
                                   seeds=(0,))
-    manifest = json.loads((experiment / "experiment.json").read_text())
-    manifest["runs"] = [r for r in manifest["runs"] if r != "runs/trajflow-hotel-s0"]
-    manifest["plan"] = [{"run": f"runs/{m}-{f}-s0", "model": m, "fold": f, "seed": 0}
-                        for m in ("cv", "trajflow") for f in ("eth", "hotel", "zara1")]
-    (experiment / "experiment.json").write_text(json.dumps(manifest))
+    _with_plan(experiment, ("cv", "trajflow"), ("eth", "hotel", "zara1"), unfinished=("runs/trajflow-hotel-s0",))
     markdown = (report([experiment], tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
     section = _section(markdown, "ETH/UCY")
-    assert ("Not every model has runs on all 3 folds yet: TrajFlow has none on folds hotel, zara1; Constant "
+    assert ("Not every model has runs on every fold yet: TrajFlow has none on folds hotel, zara1; Constant "
             "velocity has none on fold zara1.") in section
-    assert "minADE: NOT CHECKED — no TrajFlow run on folds hotel, zara1 yet" in section
-    assert ("3 of 6 planned runs are finished; the report shows the finished ones (not yet: TrajFlow, 2 runs; "
-            "Constant velocity, 1 run)") in markdown
+    assert "The paper targets are not judged until TrajFlow has every fold" in section
+    assert "minADE: NOT CHECKED — no TrajFlow run on folds hotel, zara1 yet; our TrajFlow" in section
     assert "MET" not in section.replace("NOT CHECKED", "")
     assert "(on fold eth, the only one both have runs on)" in section
-    manifest["plan"] = [{"run": "runs/x", "model": "cv", "fold": 3, "seed": 0}]
+    assert ("3 of 6 planned runs are finished; the report shows the finished ones (not yet: TrajFlow, 2 runs; "
+            "Constant velocity, 1 run)") in markdown
+    # an older manifest without the plan: the folds are those of the runs (hotel, from cv), not the planned zara1
+    manifest = json.loads((experiment / "experiment.json").read_text())
+    del manifest["plan"]
     (experiment / "experiment.json").write_text(json.dumps(manifest))
-    with pytest.raises(DataError, match=r"experiment\.json.*`plan`"):
-        report([experiment], tmp_path / "rep2", quiet=True, figures=False)
+    section = _section((report([experiment], tmp_path / "rep1", quiet=True, figures=False) / "report.md").read_text(),
+                       "ETH/UCY")
+    assert "Not every model has runs on every fold yet: TrajFlow has none on fold hotel." in section
+    for plan in ([{"run": "runs/x", "model": "cv", "fold": 3, "seed": 0}],
+                 [{"run": "runs/x", "model": "cv", "fold": "eth", "seed": True}], {"runs/x": "cv"}):
+        manifest["plan"] = plan
+        (experiment / "experiment.json").write_text(json.dumps(manifest))
+        with pytest.raises(DataError, match=r"experiment\.json.*`plan`"):
+            report([experiment], tmp_path / "rep2", quiet=True, figures=False)
+
+
+def test_the_plans_of_experiments_that_share_a_name_stay_apart(tmp_path: Path) -> None:
+    eth = write_experiment(tmp_path / "a", "eth_ucy", models=("trajflow",), folds=("eth", "hotel"), seeds=(0,))
+    synthetic = write_experiment(tmp_path / "b", "synthetic_bimodal", models=("trajflow",), folds=(None,),
+                                 seeds=(0,))
+    _with_plan(eth, ("trajflow",), ("eth", "hotel"), name="paper")
+    _with_plan(synthetic, ("trajflow",), (None,), name="paper")
+    markdown = (report([eth, synthetic], tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
+    assert "Not every model" not in markdown and "NOT CHECKED" not in markdown
 
 
 def test_parquet_training_log_without_validation(tmp_path: Path) -> None:

@@ -16,7 +16,8 @@ from trajflow_pipeline.report.figures import kde_colours, plot_min_ade_k, relati
 from trajflow_pipeline.report.paper import METRICS, metric_columns
 from trajflow_pipeline.report.render import to_html, to_markdown
 from trajflow_pipeline.report.scenes import choose_examples
-from trajflow_pipeline.report.tables import comparisons, fold_stats, format_mean_std, summary_stats, targets
+from trajflow_pipeline.report.tables import (comparisons, fold_list, fold_stats, format_mean_std, summary_stats,
+                                              targets, uneven_seeds)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -103,7 +104,7 @@ def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
         [{"dataset": "synthetic_bimodal", "model": model, "run": f"{model}-s{seed}", "metric": metric, "value": value}
          for (model, seed), values in runs.items() for metric, value in zip(("nll", "jsd", "min_ade"), values)])
     metrics = metrics.with_columns(fold=pl.lit(None, pl.String))
-    lines = comparisons(summary_stats(metrics), fold_stats(metrics))
+    lines = comparisons(fold_stats(metrics))
     # TrajFlow's means: NLL -40.0, JSD 0.30 (minADE is not a claimed metric, so it is not compared).
     assert lines == [
         "NLL indep vs TrajFlow w/o AE: NOT BETTER — our TrajFlow -40.00, TrajFlow w/o AE -41.50.",
@@ -114,25 +115,54 @@ def test_comparisons_say_where_trajflow_is_and_is_not_better() -> None:
         "JSD vs Constant velocity: BETTER — our TrajFlow 0.300, Constant velocity 1.000.",
     ]
     flomo = metrics.filter(pl.col("model") == "flomo")
-    assert comparisons(summary_stats(flomo), fold_stats(flomo)) == []
+    assert comparisons(fold_stats(flomo)) == []
+
+
+def _fold_metrics(values: dict[tuple[str, str | None, int], float]) -> pl.DataFrame:
+    """Aggregate NLL rows of ETH/UCY-like runs: (model, fold, seed) -> value."""
+    return pl.DataFrame([{"dataset": "eth_ucy", "model": model, "run": f"{model}-{fold}-s{seed}", "fold": fold,
+                          "seed": seed, "metric": "nll", "value": value}
+                         for (model, fold, seed), value in values.items()], schema_overrides={"fold": pl.String})
 
 
 def test_models_with_different_folds_are_compared_on_the_shared_ones_and_targets_wait_for_every_fold() -> None:
-    values = {("trajflow", "eth"): -1.0, ("trajflow", "hotel"): -26.0, ("trajflow", "univ"): -22.0,
-              ("cv", "eth"): 10.0, ("cv", "hotel"): 50.0, ("flomo", "zara1"): -30.0}
-    metrics = pl.DataFrame([{"dataset": "eth_ucy", "model": model, "run": f"{model}-{fold}-s0", "fold": fold,
-                             "seed": 0, "metric": "nll", "value": value} for (model, fold), value in values.items()])
-    stats, per_fold = summary_stats(metrics), fold_stats(metrics)
+    per_fold = fold_stats(_fold_metrics({
+        ("trajflow", "eth", 0): -1.0, ("trajflow", "hotel", 0): -26.0, ("trajflow", "univ", 0): -22.0,
+        ("cv", "eth", 0): 10.0, ("cv", "hotel", 0): 50.0, ("flomo", "zara1", 0): -30.0}))
     # TrajFlow's eth + hotel mean is -13.5 (its mean over its three folds, -16.33, is not comparable); FloMo shares
-    # no fold with it and is left out.
-    assert comparisons(stats, per_fold) == [
+    # no fold with it.
+    assert comparisons(per_fold) == [
+        "FloMo: not compared with TrajFlow — it has no run on a fold TrajFlow has (folds eth, hotel, univ).",
         "NLL indep vs Constant velocity: BETTER — our TrajFlow -13.50, Constant velocity 30.00 (on folds eth, "
         "hotel, the only ones both have runs on).",
     ]
-    assert targets(stats, "eth_ucy", ["zara1", "zara2"])[2] == (
-        "NLL indep: NOT CHECKED — no TrajFlow run on folds zara1, zara2 yet; our TrajFlow -16.33 over the other "
-        "folds, paper -21.05 over all of them.")
-    assert targets(stats, "eth_ucy")[2] == "NLL indep: NOT MET — our TrajFlow -16.33 > paper -21.05."
+    expected = {"eth", "hotel", "univ", "zara1", "zara2"}
+    assert targets(per_fold, "eth_ucy", expected)[2] == (
+        "NLL indep: NOT CHECKED — no TrajFlow run on folds zara1, zara2 yet; our TrajFlow -16.33 on folds eth, "
+        "hotel, univ, paper -21.05 over all of them.")
+    assert targets(per_fold, "eth_ucy")[2] == "NLL indep: NOT MET — our TrajFlow -16.33 > paper -21.05."
+
+
+def test_every_fold_counts_once_however_many_seeds_it_has() -> None:
+    # TrajFlow is better than cv on both folds; eth has three TrajFlow seeds, hotel one. The mean over runs (-7.25)
+    # would say otherwise; the mean over folds (-13.5) does not.
+    per_fold = fold_stats(_fold_metrics({
+        ("trajflow", "eth", 0): -1.0, ("trajflow", "eth", 1): -1.0, ("trajflow", "eth", 2): -1.0,
+        ("trajflow", "hotel", 0): -26.0, ("cv", "eth", 0): 0.0, ("cv", "hotel", 0): -20.0}))
+    assert comparisons(per_fold) == [
+        "NLL indep vs Constant velocity: BETTER — our TrajFlow -13.50, Constant velocity -10.00."]
+    assert uneven_seeds(per_fold) == {"trajflow": {"eth": 3, "hotel": 1}}
+    # -30 on eth (3 seeds) and -10 on hotel: a run mean of -25 would pass the paper's -21.05; the fold mean -20 fails
+    skewed = fold_stats(_fold_metrics({("trajflow", "eth", s): -30.0 for s in range(3)} | {
+        ("trajflow", "hotel", 0): -10.0}))
+    assert targets(skewed, "eth_ucy", {"eth", "hotel"})[2] == "NLL indep: NOT MET — our TrajFlow -20 > paper -21.05."
+
+
+def test_fold_lists_name_runs_without_a_fold() -> None:
+    assert fold_list(["zara2"]) == "fold zara2"
+    assert fold_list(["zara2", "univ", "univ"]) == "folds univ, zara2"
+    assert fold_list([None]) == "the test set"
+    assert fold_list([None, "eth"]) == "fold eth and the runs without a fold"
 
 
 def test_provenance_names_the_code_that_trained_and_evaluated_a_run() -> None:

@@ -79,11 +79,16 @@ class Run:
 class PlannedRun(NamedTuple):
     """One run an experiment plans (experiment.json `plan`), finished or not."""
 
-    experiment: str
+    experiment_dir: Path
     run: str             # its directory, relative to the experiment's
     model: str
     fold: str | None
     seed: int
+
+    @property
+    def path(self) -> Path:
+        """The run's directory."""
+        return self.experiment_dir / self.run
 
 
 @dataclass(frozen=True)
@@ -125,15 +130,18 @@ def read_json(path: Path) -> dict[str, Any]:
     return value
 
 
-def _plan(manifest: dict[str, Any], name: str, manifest_path: Path) -> list[PlannedRun]:
+def _plan(manifest: dict[str, Any], experiment_dir: Path, manifest_path: Path) -> list[PlannedRun]:
     """The runs an experiment plans, from its manifest's `plan` (empty for manifests written before it existed)."""
-    plan = manifest.get("plan", [])
+    plan = manifest.get("plan")
+    if plan is None:
+        return []
     if not isinstance(plan, list) or not all(
             isinstance(row, dict) and isinstance(row.get("run"), str) and isinstance(row.get("model"), str)
-            and isinstance(row.get("seed"), int) and (row.get("fold") is None or isinstance(row.get("fold"), str))
+            and type(row.get("seed")) is int and (row.get("fold") is None or isinstance(row.get("fold"), str))
             for row in plan):
-        raise DataError("`plan` must be a list of {run, model, fold, seed} objects", manifest_path)
-    return [PlannedRun(name, row["run"], row["model"], row.get("fold"), row["seed"]) for row in plan]
+        raise DataError("`plan` must be a list of {run, model, fold, seed} objects (fold a string or null, seed an "
+                        "integer)", manifest_path)
+    return [PlannedRun(experiment_dir, row["run"], row["model"], row.get("fold"), row["seed"]) for row in plan]
 
 
 def _unfinished(plan: list[PlannedRun], finished: list[str]) -> str:
@@ -157,7 +165,7 @@ def _experiment_runs(path: Path) -> tuple[list[Path], str, str | None, list[Plan
     if not isinstance(runs, list) or not all(isinstance(r, str) for r in runs):
         raise DataError("`runs` must be a list of run paths relative to the experiment", manifest_path)
     name = str(manifest.get("name", path.name))
-    plan = _plan(manifest, name, manifest_path)
+    plan = _plan(manifest, path, manifest_path)
     planned = [p.run for p in plan] or manifest.get("planned")
     note = None
     if isinstance(planned, list) and len(planned) > len(runs):

@@ -142,37 +142,59 @@ def model_folds(per_fold: pl.DataFrame) -> dict[str, set[str | None]]:
     return {str(model): set(part.get_column("fold").to_list()) for (model,), part in per_fold.group_by("model")}
 
 
+def uneven_seeds(per_fold: pl.DataFrame) -> dict[str, dict[str | None, int]]:
+    """Per model whose folds have different numbers of seeds, each fold's seed count (`per_fold`: one dataset's
+    :func:`fold_stats`)."""
+    counts = per_fold.group_by("model", "fold").agg(pl.col("seeds").max())
+    return {str(model): dict(zip(part.get_column("fold").to_list(), part.get_column("seeds").to_list()))
+            for (model,), part in counts.group_by("model") if part.get_column("seeds").n_unique() > 1}
+
+
 def fold_list(folds: Iterable[str | None]) -> str:
-    """`fold zara2`, `folds univ, zara2` (no fold: the test set)."""
+    """`fold zara2`, `folds univ, zara2`; runs without a fold are "the test set" (alone) or named beside them."""
+    folds = set(folds)
     names = sorted(f for f in folds if f is not None)
-    if not names:
-        return "the test set"
-    return f"fold{'s' if len(names) > 1 else ''} {', '.join(names)}"
+    parts = [f"fold{'s' if len(names) > 1 else ''} {', '.join(names)}"] if names else []
+    if None in folds:
+        parts.append("the runs without a fold" if names else "the test set")
+    return " and ".join(parts)
 
 
-def targets(stats: pl.DataFrame, dataset: str, missing: Iterable[str | None] = ()) -> list[str]:
-    """Plain sentences: does our TrajFlow mean meet (≤) the paper's value, metric by metric?
+def fold_mean(per_fold: pl.DataFrame, model: str, metric: str, folds: set[str | None] | None = None) -> float | None:
+    """A model's mean over folds of its per-fold means (over seeds) of `metric`: each fold counts once, however many
+    seeds it has, as the paper averages locations. Over `folds` only when given; None when one lacks the metric."""
+    part = per_fold.filter((pl.col("model") == model) & (pl.col("metric") == metric))
+    means = {row["fold"]: row["mean"] for row in part.iter_rows(named=True)}
+    wanted = set(means) if folds is None else folds
+    if not wanted or not wanted <= set(means):
+        return None
+    return sum(means[f] for f in wanted) / len(wanted)
 
-    The paper's values are means over every fold: with folds `missing` (planned, or evaluated for another model,
-    but without a TrajFlow run) a mean over the others is shown and not judged.
+
+def targets(per_fold: pl.DataFrame, dataset: str, expected: set[str | None] | None = None) -> list[str]:
+    """Plain sentences: does our TrajFlow mean (over folds of the per-fold means) meet (≤) the paper's value?
+
+    `per_fold` is :func:`fold_stats` for one dataset. The paper's values are means over every fold: where TrajFlow
+    has no run on some of the `expected` folds (planned, or evaluated for another model), its mean over the
+    others is shown and not judged.
     """
     paper = PAPER_TRAJFLOW.get(dataset)
     if paper is None:
         return [f"The paper reports no TrajFlow results for `{dataset}`; no targets to check."]
-    ours = dict(stats.filter(pl.col("model") == OUR_TRAJFLOW).select("metric", "mean").iter_rows())
-    if not ours:
+    have = model_folds(per_fold).get(OUR_TRAJFLOW)
+    if not have:
         return ["No TrajFlow (`trajflow`) runs for this dataset; the paper targets were not checked."]
-    missing = list(missing)
+    missing = (expected or set()) - have
     lines = []
     for spec in metric_columns(list(paper)):
         if spec.name not in paper:
             continue
-        target, value = paper[spec.name], ours.get(spec.name)
+        target, value = paper[spec.name], fold_mean(per_fold, OUR_TRAJFLOW, spec.name)
         if value is None:
             lines.append(f"{spec.label}: not evaluated (paper {target:g}).")
         elif missing:
             lines.append(f"{spec.label}: NOT CHECKED — no TrajFlow run on {fold_list(missing)} yet; our TrajFlow "
-                         f"{value:.4g} over the other folds, paper {target:g} over all of them.")
+                         f"{value:.4g} on {fold_list(have)}, paper {target:g} over all of them.")
         elif math.isfinite(value) and value <= target:
             lines.append(f"{spec.label}: MET — our TrajFlow {value:.4g} ≤ paper {target:g}.")
         elif not math.isfinite(value):
@@ -186,41 +208,34 @@ def targets(stats: pl.DataFrame, dataset: str, missing: Iterable[str | None] = (
 CLAIMED_BETTER_ON = ("nll", "jsd")
 
 
-def _means_on(per_fold: pl.DataFrame, model: str, metric: str, folds: set[str | None]) -> float | None:
-    """A model's mean over `folds` of its per-fold means (over seeds) of `metric`."""
-    part = per_fold.filter((pl.col("model") == model) & (pl.col("metric") == metric))
-    values = [row["mean"] for row in part.iter_rows(named=True) if row["fold"] in folds]
-    return sum(values) / len(values) if len(values) == len(folds) else None
-
-
-def comparisons(stats: pl.DataFrame, per_fold: pl.DataFrame) -> list[str]:
-    """Plain sentences: is our TrajFlow mean better (lower) than each other model's, on each metric the paper
-    claims it is (NLL, JSD) and both were evaluated on? `stats` and `per_fold` are :func:`summary_stats` and
-    :func:`fold_stats` for one dataset. Where the two models' runs cover different folds, both are compared on
-    the folds they share (a mean over other folds is not comparable), and the sentence says which."""
-    mean = _pivot(stats, "model", "mean")
+def comparisons(per_fold: pl.DataFrame) -> list[str]:
+    """Plain sentences: is our TrajFlow better (lower) than each other model, on each metric the paper claims it is
+    (NLL, JSD) and both were evaluated on? `per_fold` is :func:`fold_stats` for one dataset; each model's value is
+    its mean over folds of the per-fold means. Where the two models' runs cover different folds, both are compared
+    on the folds they share (a mean over other folds is not comparable), and the sentence says which."""
     folds = model_folds(per_fold)
-    others = [m for m in model_order(stats.get_column("model").to_list()) if m != OUR_TRAJFLOW]
-    specs = [spec for spec in metric_columns(stats.get_column("metric").to_list()) if spec.name in CLAIMED_BETTER_ON]
+    others = [m for m in model_order(list(folds)) if m != OUR_TRAJFLOW]
+    present = per_fold.get_column("metric").unique().to_list()
+    specs = [spec for spec in metric_columns(present) if spec.name in CLAIMED_BETTER_ON]
+    ours_folds = folds.get(OUR_TRAJFLOW, set())
     lines = []
     for other in others:
-        ours_folds, their_folds = folds.get(OUR_TRAJFLOW, set()), folds.get(other, set())
-        shared = ours_folds & their_folds
+        shared = ours_folds & folds[other]
+        where = ""
+        if shared != ours_folds or shared != folds[other]:
+            only = "the only one" if len(shared) == 1 else "the only ones"
+            where = f" (on {fold_list(shared)}, {only} both have runs on)"
         for spec in specs:
-            ours, theirs = mean.get((OUR_TRAJFLOW, spec.name)), mean.get((other, spec.name))
-            if ours is None or theirs is None or not shared:
+            ours = fold_mean(per_fold, OUR_TRAJFLOW, spec.name, shared)
+            theirs = fold_mean(per_fold, other, spec.name, shared)
+            if ours is None or theirs is None:
                 continue
-            where = ""
-            if shared != ours_folds or shared != their_folds:
-                ours = _means_on(per_fold, OUR_TRAJFLOW, spec.name, shared)
-                theirs = _means_on(per_fold, other, spec.name, shared)
-                if ours is None or theirs is None:
-                    continue
-                only = "the only one" if len(shared) == 1 else "the only ones"
-                where = f" (on {fold_list(shared)}, {only} both have runs on)"
             better = math.isfinite(ours) and (not math.isfinite(theirs) or ours < theirs)
             verdict = "BETTER" if better else "NOT BETTER"
             lines.append(f"{spec.label} vs {model_label(other)}: {verdict} — our TrajFlow "
                          f"{format_value(ours, spec.decimals)}, {model_label(other)} "
                          f"{format_value(theirs, spec.decimals)}{where}.")
+        if specs and ours_folds and not shared:
+            lines.append(f"{model_label(other)}: not compared with TrajFlow — it has no run on a fold TrajFlow "
+                         f"has ({fold_list(ours_folds)}).")
     return lines

@@ -19,6 +19,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
+import shutil
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,7 @@ from ..report.paper import OUR_TRAJFLOW, dataset_label, dataset_order, model_lab
 from ..report.render import slug, to_html, to_markdown
 from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
 from ..report.tables import (comparisons, fold_list, fold_stats, fold_tables, model_folds, summary_stats,
-                             summary_table, targets)
+                             summary_table, targets, uneven_seeds)
 from ..util.atomic import atomic_directory
 from ..util.progress import duration_text, make_progress
 
@@ -71,6 +72,21 @@ def _check_out(out: Path, run_paths: list[Path]) -> None:
             raise TrajflowError(f"{out}: exists and is not a directory; choose another --out")
         if any(out.iterdir()) and not any((out / name).is_file() for name in REPORT_FILES):
             raise TrajflowError(f"{out}: exists and is not a trajflow report; choose another --out or remove it")
+
+
+def _keep_other_files(out: Path, tmp: Path) -> None:
+    """Copy what an older report directory holds besides the report itself (e.g. the config and the trained models
+    committed beside it) into the new one, so that regenerating a report loses nothing. Copies, not moves: until
+    the new directory replaces it, the old one stays whole."""
+    if not out.is_dir():
+        return
+    for entry in out.iterdir():
+        if entry.name in (*REPORT_FILES, FIGURE_DIR):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.copytree(entry, tmp / entry.name, symlinks=True)
+        else:
+            shutil.copy2(entry, tmp / entry.name, follow_symlinks=False)
 
 
 def _common(values: list[Any]) -> Any | None:
@@ -302,20 +318,33 @@ def _without_medians(metrics: pl.DataFrame, medians: pl.DataFrame) -> list[str]:
 
 
 def _expected_folds(runs: list[Run], planned: tuple[PlannedRun, ...]) -> set[str | None]:
-    """The folds a dataset section should cover: those of its runs and those the experiments listing them plan."""
-    experiments = {r.experiment for r in runs if r.experiment is not None}
-    return {r.fold for r in runs} | {p.fold for p in planned if p.experiment in experiments}
+    """The folds a dataset section should cover: those of its runs and those planned by the experiments that list
+    them (matched by directory: two experiments may share a name)."""
+    paths = {r.path.resolve() for r in runs}
+    experiments = {p.experiment_dir for p in planned if p.path.resolve() in paths}
+    return {r.fold for r in runs} | {p.fold for p in planned if p.experiment_dir in experiments}
 
 
-def _coverage_note(expected: set[str | None], folds: dict[str, set[str | None]]) -> list[str]:
-    """A note naming the models whose runs leave out some of the section's folds (their means are over fewer)."""
+def _coverage_notes(expected: set[str | None], folds: dict[str, set[str | None]],
+                    seeds: dict[str, dict[str | None, int]]) -> list[str]:
+    """Notes on means that are over different things: models without runs on some of the section's folds, and
+    models whose folds have different numbers of seeds."""
+    notes = []
     short = [f"{model_label(m)} has none on {fold_list(expected - folds[m])}" for m in model_order(list(folds))
              if expected - folds[m]]
-    if not short:
-        return []
-    return [f"Not every model has runs on all {len(expected)} folds yet: {'; '.join(short)}. A mean over fewer "
-            "folds is not comparable with the paper's or another model's: the targets below are not judged for "
-            "TrajFlow until it has every fold, and comparisons use the folds both models have."]
+    if short:
+        judged = (" The paper targets are not judged until TrajFlow has every fold;"
+                  if expected - folds.get(OUR_TRAJFLOW, expected) else "")
+        notes.append(f"Not every model has runs on every fold yet: {'; '.join(short)}. A mean over fewer folds is "
+                     f"not comparable with the paper's or another model's.{judged} TrajFlow is compared with "
+                     "another model on the folds both have.")
+    if seeds:
+        counts = "; ".join(f"{model_label(m)}: " + ", ".join(f"{fold_list([f])} {n}" for f, n in sorted(
+            seeds[m].items(), key=lambda item: (item[0] is not None, item[0] or ""))) for m in model_order(list(seeds)))
+        notes.append(f"Folds have different numbers of seeds ({counts}). The Results table averages runs; the "
+                     "paper targets and the comparisons average each fold's mean over its seeds, so that every "
+                     "fold counts once.")
+    return notes
 
 
 def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_fold: pl.DataFrame,
@@ -329,13 +358,14 @@ def _dataset_section(dataset: str, runs: list[Run], summary: pl.DataFrame, per_f
     folds_stats = per_fold.filter(pl.col("dataset") == dataset)
     expected, folds = _expected_folds(runs, planned), model_folds(folds_stats)
     blocks: list[Block] = [Heading(2, title, anchor=slug(dataset)), Paragraph(_describe(runs))]
-    notes = _consistency_notes(runs) + _paper_deviations(runs) + _coverage_note(expected, folds)
+    notes = (_consistency_notes(runs) + _paper_deviations(runs)
+             + _coverage_notes(expected, folds, uneven_seeds(folds_stats)))
     if notes:
         blocks.append(Bullets(tuple(f"Note: {n}" for n in notes)))
     blocks += [Heading(3, "Results"), summary_table(stats, dataset, _common([r.k for r in runs])),
                Heading(3, "Paper targets (our TrajFlow mean vs the paper's, lower is better)"),
-               Bullets(tuple(targets(stats, dataset, expected - folds.get(OUR_TRAJFLOW, set()))))]
-    versus = comparisons(stats, folds_stats)
+               Bullets(tuple(targets(folds_stats, dataset, expected)))]
+    versus = comparisons(folds_stats)
     if versus:
         blocks += [Heading(3, "TrajFlow against our other models (the paper claims better NLL and JSD)"),
                    Bullets(tuple(versus))]
@@ -499,6 +529,7 @@ def report(inputs: list[Path], out: Path, *, quiet: bool = False, figures: bool 
         "figures": [figure.path for figure in pictures],
     }
     with atomic_directory(out) as tmp:
+        _keep_other_files(out, tmp)
         (tmp / FIGURE_DIR).mkdir()
         for figure in pictures:
             (tmp / figure.path).write_bytes(figure.png)
