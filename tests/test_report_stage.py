@@ -495,3 +495,13 @@ def test_nll_medians_name_runs_without_per_agent_rows_and_keep_nan(tmp_path: Pat
     assert _table_row(medians, "TrajFlow")[1] == "2"
     per_fold = medians[medians.index("#### NLL indep median, per fold"):]
     assert _table_row(per_fold, "univ")[1] == "nan" and "hotel" not in per_fold.split("####")[1]
+
+
+def test_uneven_seeds_are_noted(tmp_path: Path) -> None:
+    experiment = write_experiment(tmp_path / "exp", "eth_ucy", models=("trajflow", "cv"), folds=("eth", "hotel"),
+                                  seeds=(0, 1))
+    manifest = json.loads((experiment / "experiment.json").read_text())
+    manifest["runs"] = [r for r in manifest["runs"] if r != "runs/trajflow-hotel-s1"]
+    (experiment / "experiment.json").write_text(json.dumps(manifest))
+    markdown = (report([experiment], tmp_path / "rep", quiet=True, figures=False) / "report.md").read_text()
+    assert "Folds have different numbers of seeds (TrajFlow: fold eth 2, fold hotel 1)." in markdown

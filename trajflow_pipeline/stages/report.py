@@ -339,8 +339,11 @@ def _coverage_notes(expected: set[str | None], folds: dict[str, set[str | None]]
                      f"not comparable with the paper's or another model's.{judged} TrajFlow is compared with "
                      "another model on the folds both have.")
     if seeds:
-        counts = "; ".join(f"{model_label(m)}: " + ", ".join(f"{fold_list([f])} {n}" for f, n in sorted(
-            seeds[m].items(), key=lambda item: (item[0] is not None, item[0] or ""))) for m in model_order(list(seeds)))
+        def per_fold(model: str) -> str:
+            ordered = sorted(seeds[model].items(), key=lambda item: (item[0] is not None, item[0] or ""))
+            return ", ".join(f"{fold_list([fold])} {count}" for fold, count in ordered)
+
+        counts = "; ".join(f"{model_label(m)}: {per_fold(m)}" for m in model_order(list(seeds)))
         notes.append(f"Folds have different numbers of seeds ({counts}). The Results table averages runs; the "
                      "paper targets and the comparisons average each fold's mean over its seeds, so that every "
                      "fold counts once.")
