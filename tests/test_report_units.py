@@ -158,6 +158,14 @@ def test_every_fold_counts_once_however_many_seeds_it_has() -> None:
     assert targets(skewed, "eth_ucy", {"eth", "hotel"})[2] == "NLL indep: NOT MET — our TrajFlow -20 > paper -21.05."
 
 
+def test_the_joint_nll_is_compared_too() -> None:
+    """On ETH/UCY the paper claims TrajFlow's distribution fit is better by both NLLs."""
+    metrics = _fold_metrics({("trajflow", "eth", 0): -60.0, ("cv", "eth", 0): 85.0}).with_columns(
+        metric=pl.lit("nll_joint"))
+    assert comparisons(fold_stats(metrics)) == [
+        "NLL joint vs Constant velocity: BETTER — our TrajFlow -60.00, Constant velocity 85.00."]
+
+
 def test_fold_lists_name_runs_without_a_fold() -> None:
     assert fold_list(["zara2"]) == "fold zara2"
     assert fold_list(["zara2", "univ", "univ"]) == "folds univ, zara2"
