@@ -56,3 +56,18 @@ def test_errors_are_one_line(app: typer.Typer, tmp_path: Path, args: list[str], 
     result = CliRunner().invoke(app, ["train", str(tmp_path / "d"), "-o", str(tmp_path / "run"), "--quiet", *args])
     assert result.exit_code == code
     assert message in result.output and "Traceback" not in result.output
+
+
+def test_autoencoder_from_reaches_the_run(app: typer.Typer, tmp_path: Path) -> None:
+    budget = ["--set", "train.ae_max_epochs=1", "--set", "train.flow_max_epochs=1", "--set", "train.ae_min_epochs=0",
+              "--set", "train.flow_min_epochs=0", "--quiet"]
+    source = CliRunner().invoke(app, ["train", str(tmp_path / "data"), "-o", str(tmp_path / "source"), *budget])
+    assert source.exit_code == 0, source.output
+    result = CliRunner().invoke(app, ["train", str(tmp_path / "data"), "-o", str(tmp_path / "run"), *budget,
+                                      "--set", "train.flow_lr=3e-4", "--autoencoder-from", str(tmp_path / "source")])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["autoencoder_from"]["run"] == str(
+        (tmp_path / "source").resolve())
+    refused = CliRunner().invoke(app, ["train", str(tmp_path / "data"), "-o", str(tmp_path / "run2"), *budget,
+                                       "--set", "train.ae_lr=3e-4", "--autoencoder-from", str(tmp_path / "source")])
+    assert refused.exit_code == 2 and "train.ae_lr" in refused.output and "Traceback" not in refused.output

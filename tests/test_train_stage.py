@@ -502,3 +502,63 @@ def test_a_raised_budget_with_val_nll_selection_keeps_what_a_longer_run_keeps(mo
     assert all(torch.equal(a[k], b[k]) for k in a)
     best = [json.loads((r / "run.json").read_text())["best"]["flow"] for r in (whole, run)]
     assert best[0] == best[1] and best[0]["epoch"] == 5
+
+
+def test_a_flow_only_run_from_another_runs_autoencoder_equals_training_from_scratch(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """--autoencoder-from: a run that takes a finished run's autoencoder and other flow settings trains only the
+    flow, and ends exactly as the same config trained from scratch; interrupted, it resumes to the same."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+    source = train(data, tmp_path / "source", **budget_options(3, 2, "train.flow_lr=0.002"))
+    other_flow = budget_options(3, 3, "train.flow_lr=0.0005", "train.flow_lr_decay=0.9")
+    scratch = train(data, tmp_path / "scratch", **other_flow)
+
+    def hook(stage: str, epoch: int) -> None:
+        assert stage == "flow", "the autoencoder must not be trained again"
+        if epoch == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, tmp_path / "reused", autoencoder_from=source, **other_flow)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    reused = train(data, tmp_path / "reused", autoencoder_from=source, resume=True, **other_flow)
+    same_run(reused, scratch)
+    info = json.loads((reused / "run.json").read_text())
+    assert info["status"] == "finished"
+    assert info["autoencoder_from"] == {"run": str(source.resolve()), "autoencoder_epochs": 3,
+                                        "autoencoder_best_epoch": info["best"]["autoencoder"]["epoch"]}
+    assert load_config(reused / "config.toml").train.flow_lr == 0.0005
+    # a budget raise keeps the record
+    train(data, reused, resume=True, **budget_options(3, 4, "train.flow_lr=0.0005", "train.flow_lr_decay=0.9"))
+    assert json.loads((reused / "run.json").read_text())["autoencoder_from"] == info["autoencoder_from"]
+
+
+@pytest.mark.parametrize("change, message", [
+    (["train.ae_lr=0.01"], "train.ae_lr"),
+    (["model.flow_layers=3"], "model.flow_layers"),
+    (["--seed"], "train.seed"),
+    (["--model"], "'trajflow' run; this run trains 'trajflow-no-ae'"),
+    (["--fold"], "fold"),
+    (["--no-autoencoder"], "end-autoencoder.pt is missing"),
+])
+def test_an_autoencoder_other_settings_would_not_train_is_refused(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                                   change: list[str], message: str) -> None:
+    install_fake_data(monkeypatch, 48, 16, folds=("a", "b"))
+    data = tmp_path / "data"
+    source = train(data, tmp_path / "source", fold="a", **budget_options(1, 1))
+    options = budget_options(1, 1, *[c for c in change if "=" in c])
+    options["fold"] = "b" if change == ["--fold"] else "a"
+    if change == ["--seed"]:
+        options["seed"] = 5
+    if change == ["--model"]:
+        options["model"] = "trajflow-no-ae"
+    if change == ["--no-autoencoder"]:
+        (source / "checkpoints" / "end-autoencoder.pt").unlink()
+    with pytest.raises(UsageError, match=message.replace("(", r"\(")):
+        train(data, tmp_path / "new", autoencoder_from=source, **options)
+    assert not (tmp_path / "new").exists()
+    # a run that did not start from this autoencoder is not resumed as if it had
+    with pytest.raises(UsageError, match="did not start from"):
+        train(data, source, resume=True, autoencoder_from=tmp_path / "elsewhere", fold="a", **budget_options(1, 1))

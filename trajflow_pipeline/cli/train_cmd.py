@@ -34,6 +34,11 @@ def train_command(
                                                           "train.ae_max_epochs=N above the run's, a stage its "
                                                           "old budget stopped continues (finished runs too).")]
     = False,
+    autoencoder_from: Annotated[Optional[Path], typer.Option(
+        "--autoencoder-from", metavar="RUN",
+        help="Start from the trained autoencoder of RUN (same model, data, fold and settings; only train.flow_* "
+             "may differ) and train the flow only: e.g. a flow learning-rate sweep without retraining the "
+             "autoencoder. Gives the run the same config would give from scratch.")] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train a model: autoencoder pre-training, then the conditional flow (early stopping on the val split)."""
@@ -41,4 +46,4 @@ def train_command(
 
     with user_errors():
         train(data, out, fold=fold, model=model, config_path=config, overrides=tuple(set_ or ()), seed=seed,
-              device=device, resume=resume, quiet=quiet)
+              device=device, resume=resume, quiet=quiet, autoencoder_from=autoencoder_from)

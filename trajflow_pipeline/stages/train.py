@@ -27,6 +27,12 @@ the new. Because every epoch's randomness comes from (seed, stage, epoch), the r
 would have given from the start (with ``train.flow_select = "val_nll"``, the end state leaves out the sample-based
 check that only the end of the stage called for, which a longer run would not have made).
 
+Flow-only runs: ``autoencoder_from=RUN`` (``--autoencoder-from``) starts a new run at the end of RUN's autoencoder
+stage (``end-autoencoder.pt``) and trains only the flow. RUN must have the same model, data, fold and settings,
+except the flow stage's own training settings (``train.flow_*``); because the autoencoder stage would have been
+the same epochs, the new run ends exactly as the same config trained from scratch would, without the hours of
+autoencoder training. Flow learning-rate or budget sweeps use this; run.json records the source.
+
 Determinism: the shuffling and every random draw of an epoch come from generators seeded by (seed, stage, epoch,
 rank), so a resumed run replays exactly the epochs an uninterrupted one would, and a fixed seed gives the same loss
 curve on CPU. Under ``torchrun`` (RANK / WORLD_SIZE set) training runs with DistributedDataParallel: each rank
@@ -74,6 +80,11 @@ LOG_FILE = "train_log.parquet"
 STATE_FILE = "checkpoints/state.pt"
 #: The training state at the last epoch of a finished gradient stage, formatted with the stage name.
 STAGE_END_FILE = "checkpoints/end-{stage}.pt"
+#: Training settings that act on the flow stage alone: a run may start from the autoencoder of a run that differs
+#: from it only in these (and the device).
+FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs",
+                   "flow_min_epochs", "flow_patience", "flow_select", "flow_select_every", "flow_select_problems",
+                   "flow_select_samples", "flow_select_max_pooled")
 #: Settings a resumed run may raise (its epoch budgets), with the gradient stage each one limits.
 BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow"}
 FINAL_DIR = "final"
@@ -89,20 +100,24 @@ _epoch_hook: EpochHook | None = None
 
 def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = None, model: str | None = None,
           config_path: str | Path | None = None, overrides: Sequence[str] = (), seed: int | None = None,
-          device: str | None = None, resume: bool = False, quiet: bool = False) -> Path:
+          device: str | None = None, resume: bool = False, quiet: bool = False,
+          autoencoder_from: str | Path | None = None) -> Path:
     """Train `model` on the train split of `dataset_dir` (validating on its val split) into `run_dir`.
 
     `model`, `seed` and `device` override the config (``model.name``, ``train.seed``, ``train.device``); the
     config is the defaults, then `config_path` (TOML), then `overrides` (``section.key=value``). With `resume`, an
     interrupted run continues from its last checkpoint (its saved config is used; options that would change it are
-    refused, except raised epoch budgets: see the module docstring) and a finished run is returned as is. Returns
-    `run_dir`.
+    refused, except raised epoch budgets: see the module docstring) and a finished run is returned as is. With
+    `autoencoder_from`, a new run starts from that run's trained autoencoder and trains the flow only (see the
+    module docstring). Returns `run_dir`.
     """
     tune_cpu_allocator()
     code_revision()  # read now: a commit or checkout during training must not be credited with it
     run_dir = Path(run_dir)
     dist = _DistContext.from_env()
     config, previous = _resolve_config(run_dir, config_path, overrides, model, seed, device, resume)
+    source = Path(autoencoder_from) if autoencoder_from is not None else None
+    fresh_from_source = source is not None and not _started(run_dir, resume, source)
     if resume and previous is None and _trained(run_dir):
         if dist.rank == 0 and not quiet:
             console.print(f"[dim]{run_dir}: already trained, nothing to resume[/]")
@@ -112,9 +127,10 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     try:
         data = _load_data(dataset_dir, fold, config)
         _check_same_data(run_dir, data, resume)
+        start = autoencoder_start(source, config, data, fold) if fresh_from_source and source else None
         session = _Session(run_dir=run_dir, config=config, data=data, device=torch_device, dist=dist, quiet=quiet,
-                           fold=fold)
-        session.run(resume)
+                           fold=fold, autoencoder_from=_source_record(run_dir, source, start))
+        session.run(resume, start)
     finally:
         dist.stop()
     return run_dir
@@ -193,6 +209,61 @@ def _trained(run_dir: Path) -> bool:
         return True
     except (OSError, ValueError) as error:
         raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
+
+
+def _started(run_dir: Path, resume: bool, source: Path) -> bool:
+    """Whether `run_dir` already holds a resumable run taken from `source`'s autoencoder (so resume it as is).
+    A resumable run from anything else is refused: its autoencoder is not `source`'s."""
+    if not (resume and (run_dir / STATE_FILE).is_file()):
+        return False
+    try:
+        recorded = json.loads((run_dir / RUN_FILE).read_text()).get("autoencoder_from") or {}
+    except (OSError, ValueError) as error:
+        raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
+    if recorded.get("run") != str(source.resolve()):
+        raise UsageError(f"{run_dir} already holds a run that did not start from {source}'s autoencoder; resume it "
+                         "without --autoencoder-from, or train into a new directory")
+    return True
+
+
+def _source_record(run_dir: Path, source: str | Path | None, start: dict[str, Any] | None) -> dict[str, Any] | None:
+    """What run.json says about the run whose autoencoder this one took: from `start` for a new run, else what
+    the run's own run.json already says (None for a run that trained its own)."""
+    if start is not None and source is not None:
+        epochs = sum(1 for row in start["log"] if row["stage"] == "autoencoder")
+        return {"run": str(Path(source).resolve()), "autoencoder_epochs": epochs,
+                "autoencoder_best_epoch": int(start["best_epoch"])}
+    try:
+        return json.loads((run_dir / RUN_FILE).read_text()).get("autoencoder_from")
+    except (OSError, ValueError):
+        return None
+
+
+def autoencoder_start(source: Path, config: RunConfig, data: _Data, fold: str | None) -> dict[str, Any]:
+    """The training state a new run with `config` starts from when it takes the autoencoder of the run in `source`:
+    that run's state at the end of its autoencoder stage, carrying `config`. Refused (UsageError naming the
+    difference) unless `source` trained the same model on the same data and fold with the same settings, flow
+    training settings aside, so that its autoencoder is the one `config` would train."""
+    end_path = source / STAGE_END_FILE.format(stage="autoencoder")
+    if not end_path.is_file():
+        raise UsageError(f"{source}: no finished autoencoder stage to start from ({end_path.name} is missing)")
+    try:
+        info = json.loads((source / RUN_FILE).read_text())
+    except (OSError, ValueError) as error:
+        raise TrajflowError(f"{source / RUN_FILE}: unreadable run description ({error})") from None
+    _check_same_data(source, data, resume=True)
+    if info.get("fold") != fold:
+        raise UsageError(f"{source} was trained for fold {info.get('fold')!r}, this run is for {fold!r}")
+    state = load_training_state(end_path)
+    if state.get("model") != config.model.name:
+        raise UsageError(f"{end_path}: a {state.get('model')!r} run; this run trains {config.model.name!r}")
+    trained = RunConfig.from_dict(json.loads(state["config"]))
+    flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, "device")}
+    comparable = replace(trained, train=replace(trained.train, **flow_settings))
+    if comparable != config:
+        raise UsageError(f"{source} trained its autoencoder with other settings ({first_difference(comparable, config)});"
+                         f" only train.flow_* settings may differ")
+    return {**state, "config": config.to_json()}
 
 
 def _with_options(config: RunConfig, model: str | None, seed: int | None, device: str | None) -> RunConfig:
@@ -393,6 +464,8 @@ class _Session:
     #: the code revisions and the machines that trained this run, oldest first (see util.provenance)
     code_revisions: list[str] = field(default_factory=list)
     machines: list[str] = field(default_factory=list)
+    #: the run whose trained autoencoder this one started from (run.json "autoencoder_from"), if any
+    autoencoder_from: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         self.code_revisions = self.code_revisions or revisions_after([])
@@ -402,12 +475,22 @@ class _Session:
     def writer(self) -> bool:
         return self.dist.rank == 0
 
-    def run(self, resume: bool) -> None:
+    def run(self, resume: bool, start: dict[str, Any] | None = None) -> None:
+        """Train every stage from the first (or from `start`, a training state to go on from; see
+        `autoencoder_start`), or, with `resume`, from the run's last checkpoint."""
         torch.manual_seed(self.config.train.seed)
         self.model = build_model(self.config.model, self.data.spec, seed=self.config.train.seed).to(self.device)
         stage_index, progress = 0, _StageProgress()
         state_path = self.run_dir / STATE_FILE
-        if resume and state_path.is_file():
+        if start is not None:
+            stage_index, progress = self._restore(start)
+            self.started = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+            if self.writer:
+                self.run_dir.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
+                self._write_run_info("training")
+                save_training_state(state_path, start)
+        elif resume and state_path.is_file():
             state = load_training_state(state_path, expected_model=self.model.name)
             state, reopened, adopted = self._follow_budget(state)
             if state is None:
@@ -763,6 +846,8 @@ class _Session:
             "started": self.started, "code_revisions": self.code_revisions, "machines": self.machines,
             "final": f"{FINAL_DIR}/model.safetensors" if status == "finished" else None,
         }
+        if self.autoencoder_from is not None:
+            info["autoencoder_from"] = self.autoencoder_from
         if status == "finished":
             info["finished"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
         info.update(extra or {})
