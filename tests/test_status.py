@@ -250,3 +250,21 @@ def test_an_evaluation_in_progress_shows_its_saved_fits(tmp_path: Path) -> None:
     evaluating, = named(experiment_status(out), "trajflow-eth-s0")
     assert (evaluating.state, evaluating.fits_saved) == ("trained", (3, 5))
     assert "eval: 3/5 fits saved" in _cli_output(out)
+
+
+def test_one_run_of_trajflow_train(tmp_path: Path) -> None:
+    """`trajflow status RUN` on a run directory of its own: its state and progress under its saved config."""
+    out = tmp_path / "alone"
+    run = write_run(out, "r", status="training", log=autoencoder_then_flow([-1.0, -3.0, -2.0]))
+    status = experiment_status(run)
+    assert (status.kind, status.name, len(status.runs)) == ("run", "r", 1)
+    only = status.runs[0]
+    assert (only.state, only.busy, only.model) == ("training or interrupted", None, "trajflow")
+    assert only.progress is not None and only.progress.epochs_left == (2, 5)
+    output = _cli_output(run)
+    assert "run r" in output and "flow: 3/8" in output and "1 run: 1 training or interrupted" in output
+    done = write_run(out, "done", status="finished", log=autoencoder_then_flow([-1, -2]), evaluated=True)
+    assert experiment_status(done).runs[0].state == "done" and "0.250/0.500" in _cli_output(done)
+    (done / "run.json").write_text("{broken")
+    broken, = experiment_status(done).runs
+    assert broken.state == "unreadable" and "run.json" in (broken.problem or "")

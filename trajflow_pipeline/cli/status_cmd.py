@@ -26,10 +26,11 @@ _STATE_STYLE = {"done": "green", "training": "bold cyan", "evaluating": "bold cy
 
 
 def status_command(
-    experiment: Annotated[Path, typer.Argument(help="An experiment directory (`trajflow experiment ... -o EXP`).")],
+    experiment: Annotated[Path, typer.Argument(help="An experiment directory (`trajflow experiment ... -o EXP`), "
+                                                    "or one run's (`trajflow train ... -o RUN`).")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the status as JSON on stdout.")] = False,
 ) -> None:
-    """Where each run of an experiment stands: state, stage and epoch against its budget, early-stopping patience,
+    """Where each run of an experiment (or one run) stands: state, stage and epoch against its budget, early-stopping patience,
     time per epoch and the time the stage can still take, training time so far, minADE/minFDE when done."""
     from ..stages.status import experiment_status
 
@@ -43,7 +44,7 @@ def status_command(
 
 def print_status(status: ExperimentStatus, out: Console) -> None:
     """The status as a rich table and a summary line."""
-    table = Table(title=f"experiment {status.name}  ({status.path})")
+    table = Table(title=f"{status.kind} {status.name}  ({status.path})")
     table.add_column("run", no_wrap=True)
     table.add_column("state")
     for column in ("stage: epoch", "best (patience)", "s/epoch", "stage left", "trained", "minADE/FDE"):
@@ -58,7 +59,7 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
     trained = sum(run.train_seconds for run in status.runs)
     evaluated = sum(run.eval_seconds or 0.0 for run in status.runs)
     summary = ", ".join(f"{count} {state}" for state, count in states.most_common())
-    out.print(f"{len(status.runs)} runs: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
+    out.print(f"{len(status.runs)} run{'' if len(status.runs) == 1 else 's'}: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
               f"evaluation {duration_text(evaluated)}.", highlight=False)
     for run in status.runs:
         if run.problem:

@@ -1,5 +1,8 @@
 """`trajflow status EXP`: where each run of an experiment stands, for experiments that take hours or days.
 
+`trajflow status RUN` does the same for one run of `trajflow train -o RUN`. Such a run holds no claim, so while it
+is not finished it shows as "training or interrupted".
+
 It reads only what training and evaluation leave behind (``run.json``, ``config.toml``, ``train_log.parquet``,
 ``eval/eval.json``) and the operating system's table of file locks (``/proc/locks``) to see which runs a live
 process has claimed. It never takes a claim itself, so asking cannot make a worker skip a run. Where the lock table
@@ -120,6 +123,8 @@ class ExperimentStatus:
     path: Path
     runs: list[RunStatus]
     note: str | None = None
+    #: "experiment", or "run" for the status of one run directory
+    kind: str = "experiment"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite metric values as null), with each stage's remaining epoch range."""
@@ -131,12 +136,14 @@ class ExperimentStatus:
                 entry["progress"] |= {"epochs_left": run.progress.epochs_left,
                                       "patience_left": run.progress.patience_left}
             runs.append(entry)
-        return {"name": self.name, "path": str(self.path), "note": self.note, "runs": runs}
+        return {"name": self.name, "kind": self.kind, "path": str(self.path), "note": self.note, "runs": runs}
 
 
 def experiment_status(out: str | Path) -> ExperimentStatus:
     """The status of every run the experiment in `out` (made by `trajflow experiment ... -o out`) plans."""
     out = Path(out)
+    if (out / RUN_FILE).is_file():
+        return _single_run_status(out)
     if not (out / "config.toml").is_file():
         raise UsageError(f"{out}: not an experiment directory (no config.toml; `trajflow experiment CONFIG -o {out}` "
                          "makes one)")
@@ -145,6 +152,20 @@ def experiment_status(out: str | Path) -> ExperimentStatus:
     claims = _Claims(out / "runs")
     runs = [_run_status(out, config, model, fold, seed, claims) for model, fold, seed in plan]
     return ExperimentStatus(name=config.name, path=out, runs=runs, note=note)
+
+
+def _single_run_status(run_dir: Path) -> ExperimentStatus:
+    """The status of the one run in `run_dir` (a `trajflow train -o` directory), under its own saved config."""
+    try:
+        info = _read_json(run_dir / RUN_FILE) or {}
+        model = str(info.get("model") or load_config(run_dir / CONFIG_FILE).model.name)
+        fold, seed = info.get("fold"), info.get("seed")
+        run = _inspect_run(run_dir, None, model, fold if isinstance(fold, str) else None,
+                           seed if isinstance(seed, int) and not isinstance(seed, bool) else 0, None)
+    except TrajflowError as error:
+        run = RunStatus(name=run_dir.name, model="?", fold=None, seed=0, state="unreadable", busy=None,
+                        progress=None, train_seconds=0.0, eval_seconds=None, metrics={}, problem=str(error))
+    return ExperimentStatus(name=run_dir.name, path=run_dir, runs=[run], kind="run")
 
 
 def _planned(out: Path, config: ExperimentConfig) -> tuple[list[tuple[str, str | None, int]], str | None]:
@@ -293,11 +314,12 @@ def _run_status(out: Path, config: ExperimentConfig, model: str, fold: str | Non
 _UNFINISHED = ("training", "interrupted", "training or interrupted")
 
 
-def _inspect_run(run_dir: Path, config: ExperimentConfig, model: str, fold: str | None, seed: int,
+def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fold: str | None, seed: int,
                  busy: bool | None) -> RunStatus:
-    """The state of the run in `run_dir` from its files and its claim (`busy`), its progress and its times."""
+    """The state of the run in `run_dir` from its files and its claim (`busy`), its progress and its times, under
+    the experiment `config` (None: a run of its own, under its saved config)."""
     info = _read_json(run_dir / RUN_FILE)
-    overrides = run_overrides(config, model, run_dir)
+    overrides = run_overrides(config, model, run_dir) if config is not None else []
     if info is None:
         state = "training" if busy else "planned"
     elif info.get("status") != "finished":
