@@ -30,8 +30,9 @@ def status_command(
                                                     "or one run's (`trajflow train ... -o RUN`).")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the status as JSON on stdout.")] = False,
 ) -> None:
-    """Where each run of an experiment (or one run) stands: state, stage and epoch against its budget, early-stopping patience,
-    time per epoch and the time the stage can still take, training time so far, minADE/minFDE when done."""
+    """Where each run of an experiment (or one run) stands: state, stage and epoch against its budget,
+    early-stopping patience, time per epoch and the time the stage can still take, training time so far,
+    minADE/minFDE when done."""
     from ..stages.status import experiment_status
 
     with user_errors():
@@ -59,7 +60,8 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
     trained = sum(run.train_seconds for run in status.runs)
     evaluated = sum(run.eval_seconds or 0.0 for run in status.runs)
     summary = ", ".join(f"{count} {state}" for state, count in states.most_common())
-    out.print(f"{len(status.runs)} run{'' if len(status.runs) == 1 else 's'}: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
+    runs = f"{len(status.runs)} run{'' if len(status.runs) == 1 else 's'}"
+    out.print(f"{runs}: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
               f"evaluation {duration_text(evaluated)}.", highlight=False)
     for run in status.runs:
         if run.problem:

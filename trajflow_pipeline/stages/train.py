@@ -261,8 +261,8 @@ def autoencoder_start(source: Path, config: RunConfig, data: _Data, fold: str | 
     flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, "device")}
     comparable = replace(trained, train=replace(trained.train, **flow_settings))
     if comparable != config:
-        raise UsageError(f"{source} trained its autoencoder with other settings ({first_difference(comparable, config)});"
-                         f" only train.flow_* settings may differ")
+        raise UsageError(f"{source} trained its autoencoder with other settings "
+                         f"({first_difference(comparable, config)}); only train.flow_* settings may differ")
     return {**state, "config": config.to_json()}
 
 
