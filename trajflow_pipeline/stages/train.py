@@ -117,7 +117,8 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     dist = _DistContext.from_env()
     config, previous = _resolve_config(run_dir, config_path, overrides, model, seed, device, resume)
     source = Path(autoencoder_from) if autoencoder_from is not None else None
-    fresh_from_source = source is not None and not _started(run_dir, resume, source)
+    #: the run to take the autoencoder from now (None: no source, or this run already took it and resumes)
+    start_from = source if source is not None and not _started(run_dir, resume, source) else None
     if resume and previous is None and _trained(run_dir):
         if dist.rank == 0 and not quiet:
             console.print(f"[dim]{run_dir}: already trained, nothing to resume[/]")
@@ -127,7 +128,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     try:
         data = _load_data(dataset_dir, fold, config)
         _check_same_data(run_dir, data, resume)
-        start = autoencoder_start(source, config, data, fold) if fresh_from_source and source else None
+        start = autoencoder_start(start_from, config, data, fold) if start_from is not None else None
         session = _Session(run_dir=run_dir, config=config, data=data, device=torch_device, dist=dist, quiet=quiet,
                            fold=fold, autoencoder_from=_source_record(run_dir, source, start))
         session.run(resume, start)
@@ -211,32 +212,37 @@ def _trained(run_dir: Path) -> bool:
         raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
 
 
+def _run_info(run_dir: Path) -> dict[str, Any]:
+    """The run's run.json ({} when it has none yet); an unreadable one is an error naming it."""
+    try:
+        info = json.loads((run_dir / RUN_FILE).read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as error:
+        raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
+    return info if isinstance(info, dict) else {}
+
+
 def _started(run_dir: Path, resume: bool, source: Path) -> bool:
     """Whether `run_dir` already holds a resumable run taken from `source`'s autoencoder (so resume it as is).
     A resumable run from anything else is refused: its autoencoder is not `source`'s."""
     if not (resume and (run_dir / STATE_FILE).is_file()):
         return False
-    try:
-        recorded = json.loads((run_dir / RUN_FILE).read_text()).get("autoencoder_from") or {}
-    except (OSError, ValueError) as error:
-        raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
+    recorded = _run_info(run_dir).get("autoencoder_from") or {}
     if recorded.get("run") != str(source.resolve()):
         raise UsageError(f"{run_dir} already holds a run that did not start from {source}'s autoencoder; resume it "
                          "without --autoencoder-from, or train into a new directory")
     return True
 
 
-def _source_record(run_dir: Path, source: str | Path | None, start: dict[str, Any] | None) -> dict[str, Any] | None:
+def _source_record(run_dir: Path, source: Path | None, start: dict[str, Any] | None) -> dict[str, Any] | None:
     """What run.json says about the run whose autoencoder this one took: from `start` for a new run, else what
     the run's own run.json already says (None for a run that trained its own)."""
     if start is not None and source is not None:
         epochs = sum(1 for row in start["log"] if row["stage"] == "autoencoder")
-        return {"run": str(Path(source).resolve()), "autoencoder_epochs": epochs,
+        return {"run": str(source.resolve()), "autoencoder_epochs": epochs,
                 "autoencoder_best_epoch": int(start["best_epoch"])}
-    try:
-        return json.loads((run_dir / RUN_FILE).read_text()).get("autoencoder_from")
-    except (OSError, ValueError):
-        return None
+    return _run_info(run_dir).get("autoencoder_from")
 
 
 def autoencoder_start(source: Path, config: RunConfig, data: _Data, fold: str | None) -> dict[str, Any]:
@@ -247,10 +253,7 @@ def autoencoder_start(source: Path, config: RunConfig, data: _Data, fold: str | 
     end_path = source / STAGE_END_FILE.format(stage="autoencoder")
     if not end_path.is_file():
         raise UsageError(f"{source}: no finished autoencoder stage to start from ({end_path.name} is missing)")
-    try:
-        info = json.loads((source / RUN_FILE).read_text())
-    except (OSError, ValueError) as error:
-        raise TrajflowError(f"{source / RUN_FILE}: unreadable run description ({error})") from None
+    info = _run_info(source)
     _check_same_data(source, data, resume=True)
     if info.get("fold") != fold:
         raise UsageError(f"{source} was trained for fold {info.get('fold')!r}, this run is for {fold!r}")
@@ -347,13 +350,9 @@ def _load_validation(dataset_dir: str | Path, fold: str | None) -> Any:
 
 def _check_same_data(run_dir: Path, data: _Data, resume: bool) -> None:
     """On resume, refuse data other than the run started on (other dataset, or its manifest changed)."""
-    info_path = run_dir / RUN_FILE
-    if not resume or not info_path.is_file():
+    if not resume:
         return
-    try:
-        trained = json.loads(info_path.read_text()).get("fingerprint", {})
-    except (OSError, ValueError) as error:
-        raise TrajflowError(f"{info_path}: unreadable run description ({error})") from None
+    trained = _run_info(run_dir).get("fingerprint", {})
     for key in ("dataset", "manifest_sha256"):
         if key in trained and trained.get(key) != data.fingerprint.get(key):
             raise UsageError(f"{run_dir} was trained on other data ({key}: {trained.get(key)!r} vs "
