@@ -293,6 +293,29 @@ def test_corrupt_checkpoint_on_resume_names_the_file(monkeypatch: pytest.MonkeyP
         train(tmp_path / "d", tmp_path / "run", resume=True, **options)
 
 
+def test_resume_continues_on_the_runs_own_fold(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 32, 8, folds=("a", "b"))
+    options = dict(model="trajflow-no-ae", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=2"])
+
+    def hook(stage: str, epoch: int) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(KeyboardInterrupt):
+        train(tmp_path / "d", tmp_path / "run", fold="a", **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    with pytest.raises(UsageError, match="started for fold 'a', not 'b'"):
+        train(tmp_path / "d", tmp_path / "run", fold="b", resume=True, **options)
+    requested: list[str | None] = []
+    serve = data_module.load_problems
+    monkeypatch.setattr(data_module, "load_problems", lambda path, fold=None, split="train": (
+        requested.append(fold), serve(path, fold=fold, split=split))[1])
+    train(tmp_path / "d", tmp_path / "run", resume=True, **options)  # no --fold: the run's own
+    assert requested and set(requested) == {"a"}
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert info["fold"] == "a" and info["status"] == "finished"
+
+
 def test_trains_on_a_real_dataset_directory(synthetic_dataset: Path, tmp_path: Path) -> None:
     run = train(synthetic_dataset, tmp_path / "run", model="trajflow", quiet=True,
                 overrides=[*FAST, *TINY_MODEL, "train.ae_max_epochs=2", "train.flow_max_epochs=2"])

@@ -116,6 +116,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     run_dir = Path(run_dir)
     dist = _DistContext.from_env()
     config, previous = _resolve_config(run_dir, config_path, overrides, model, seed, device, resume)
+    fold = _resume_fold(run_dir, fold) if resume else fold
     source = Path(autoencoder_from) if autoencoder_from is not None else None
     #: the run to take the autoencoder from now (None: no source, or this run already took it and resumes)
     start_from = source if source is not None and not _started(run_dir, resume, source) else None
@@ -221,6 +222,18 @@ def _run_info(run_dir: Path) -> dict[str, Any]:
     except (OSError, ValueError) as error:
         raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
     return info if isinstance(info, dict) else {}
+
+
+def _resume_fold(run_dir: Path, fold: str | None) -> str | None:
+    """The fold a resumed run continues on: the one it was started for (so ``--resume`` needs no ``--fold``);
+    a different `fold` is refused, since the run's weights were fitted to the other fold's training data."""
+    recorded = _run_info(run_dir).get("fold")
+    if recorded is None:
+        return fold
+    if fold is not None and str(fold) != str(recorded):
+        raise UsageError(f"{run_dir} was started for fold {recorded!r}, not {fold!r}; resume it without --fold "
+                         "(or with its own), or train into a new directory")
+    return str(recorded)
 
 
 def _started(run_dir: Path, resume: bool, source: Path) -> bool:
