@@ -861,7 +861,9 @@ class _Session:
         if self.autoencoder_from is not None:
             info["autoencoder_from"] = self.autoencoder_from
         if status == "finished":
-            info["finished"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+            # to the microsecond: with the weights' digest it tells one training of the final model from the next
+            # (a raised budget can end in the second the run first finished, keeping the same weights)
+            info["finished"] = dt.datetime.now(dt.timezone.utc).isoformat()
         info.update(extra or {})
         atomic_write_text(self.run_dir / RUN_FILE, json.dumps(info, indent=2, default=str) + "\n")
 
