@@ -70,6 +70,18 @@ def train_killed_and_resumed(monkeypatch: pytest.MonkeyPatch, run: Path, kill_af
     return train(run.parent / "data", run, resume=True, **options)
 
 
+def interrupted_after_first_epoch(monkeypatch: pytest.MonkeyPatch, data: Path, run: Path, **options: object) -> None:
+    """Start training `run` and stop it (KeyboardInterrupt) once its first epoch is checkpointed."""
+
+    def hook(stage: str, epoch: int) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    with pytest.raises(KeyboardInterrupt):
+        train(data, run, **options)
+    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+
+
 def log_of(run: Path) -> pl.DataFrame:
     return pl.read_parquet(run / "train_log.parquet")
 
@@ -278,14 +290,7 @@ def test_bad_input_is_one_clear_error(monkeypatch: pytest.MonkeyPatch, tmp_path:
 def test_corrupt_checkpoint_on_resume_names_the_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     install_fake_data(monkeypatch, 32, 8)
     options = dict(model="trajflow-no-ae", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=2"])
-
-    def hook(stage: str, epoch: int) -> None:
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
-    with pytest.raises(KeyboardInterrupt):
-        train(tmp_path / "d", tmp_path / "run", **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    interrupted_after_first_epoch(monkeypatch, tmp_path / "d", tmp_path / "run", **options)
     state = tmp_path / "run" / "checkpoints" / "state.pt"
     assert load_training_state(state)["epoch"] == 1
     state.write_bytes(b"not a checkpoint")
@@ -296,14 +301,7 @@ def test_corrupt_checkpoint_on_resume_names_the_file(monkeypatch: pytest.MonkeyP
 def test_resume_continues_on_the_runs_own_fold(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     install_fake_data(monkeypatch, 32, 8, folds=("a", "b"))
     options = dict(model="trajflow-no-ae", quiet=True, overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=2"])
-
-    def hook(stage: str, epoch: int) -> None:
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
-    with pytest.raises(KeyboardInterrupt):
-        train(tmp_path / "d", tmp_path / "run", fold="a", **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    interrupted_after_first_epoch(monkeypatch, tmp_path / "d", tmp_path / "run", fold="a", **options)
     with pytest.raises(UsageError, match="started for fold 'a', not 'b'"):
         train(tmp_path / "d", tmp_path / "run", fold="b", resume=True, **options)
     requested: list[str | None] = []
