@@ -456,11 +456,48 @@ def test_a_stage_that_stopped_early_is_not_retrained(monkeypatch: pytest.MonkeyP
     assert load_config(run / "config.toml").train.flow_max_epochs == 20
 
 
+def test_raised_patience_continues_a_stage_that_stopped_early(monkeypatch: pytest.MonkeyPatch,
+                                                              tmp_path: Path) -> None:
+    """More patience on a run whose flow stopped early continues the flow from its last epoch and ends as a run
+    with that patience from the start; once the stage would have stopped there anyway, more is a no-op."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+
+    def options(patience: int, flow: int = 12) -> dict[str, object]:
+        return budget_options(1, flow, f"train.flow_patience={patience}", "train.flow_lr=0.5")
+
+    run = train(data, tmp_path / "run", **options(1))
+    stopped_at = log_of(run).filter(pl.col("stage") == "flow").height
+    assert stopped_at < 12, "the settings should make the flow stop early"
+    train(data, run, resume=True, **options(4))
+    longer = train(data, tmp_path / "patience4", **options(4))
+    same_run(run, longer)
+    assert log_of(run).filter(pl.col("stage") == "flow").height > stopped_at
+    assert load_config(run / "config.toml").train.flow_patience == 4
+    assert json.loads((run / "run.json").read_text())["status"] == "finished"
+
+    # A stage that ran its whole budget: more patience changes nothing, and the run stays as it was.
+    full = train(data, tmp_path / "full", **options(1, flow=2))
+    assert log_of(full).filter(pl.col("stage") == "flow").height == 2
+    before = (full / "final" / "model.safetensors").read_bytes()
+    train(data, full, resume=True, **options(5, flow=2))
+    assert (full / "final" / "model.safetensors").read_bytes() == before
+    assert load_config(full / "config.toml").train.flow_patience == 5
+
+    # Less patience is not a budget raise, and an early-stopped stage without its end state cannot continue.
+    with pytest.raises(UsageError, match="flow_patience"):
+        train(data, run, resume=True, **options(2))
+    (run / "checkpoints" / "end-flow.pt").unlink()
+    with pytest.raises(UsageError, match="end-flow.pt is missing.*flow_patience 4 -> 6"):
+        train(data, run, resume=True, **options(6))
+
+
 def test_only_raised_budgets_may_change_on_resume(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     install_fake_data(monkeypatch, 64, 16)
     data = tmp_path / "data"
     run = train(data, tmp_path / "run", **budget_options(2, 2))
-    with pytest.raises(UsageError, match="flow_max_epochs.*only train.ae_max_epochs / train.flow_max_epochs"):
+    with pytest.raises(UsageError, match="flow_max_epochs.*only train.ae_max_epochs / train.flow_max_epochs / train.ae_patience / "
+                                         "train.flow_patience may be raised"):
         train(data, run, resume=True, **budget_options(2, 1))
     with pytest.raises(UsageError, match="flow_lr"):
         train(data, run, resume=True, **budget_options(2, 4, "train.flow_lr=3e-4"))

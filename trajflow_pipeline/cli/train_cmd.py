@@ -31,9 +31,10 @@ def train_command(
     device: Annotated[Optional[str], typer.Option(help="auto, cpu, cuda or cuda:N (train.device).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its last "
                                                           "checkpoint (on its own fold). With --set "
-                                                          "train.flow_max_epochs=N or train.ae_max_epochs=N "
-                                                          "above the run's, a stage its old budget stopped "
-                                                          "continues (finished runs too).")]
+                                                          "train.flow_max_epochs=N, train.flow_patience=N (or "
+                                                          "the ae_ ones) above the run's, a stage the larger "
+                                                          "budget would not have stopped continues from its last "
+                                                          "epoch (finished runs too).")]
     = False,
     autoencoder_from: Annotated[Optional[Path], typer.Option(
         "--autoencoder-from", metavar="RUN",

@@ -23,9 +23,10 @@ An experiment config is TOML::
 
 Runs land in ``EXP/runs/<model>-<fold>-s<seed>/``. Re-running the same command skips finished runs and resumes an
 interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work. The
-config may change between calls only by raising epoch budgets (``train.ae_max_epochs`` / ``train.flow_max_epochs``
-in ``[train] set`` or ``[models.*] set``; comments, name and description are free): runs their old budget stopped
-then continue from their last epoch (see :mod:`trajflow_pipeline.stages.train`) and are evaluated again.
+config may change between calls only by raising epoch budgets (``train.ae_max_epochs`` / ``train.flow_max_epochs`` /
+``train.ae_patience`` / ``train.flow_patience`` in ``[train] set`` or ``[models.*] set``; comments, name and
+description are free): runs that the larger budget would not have stopped where the old one did then continue from
+their last epoch (see :mod:`trajflow_pipeline.stages.train`) and are evaluated again.
 ``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
 
 Runs are worked on model by model, the models fitted in closed form (the constant-velocity baseline) first: they
@@ -287,7 +288,8 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
     if raised and not quiet:
         console.print("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new)
                                                           in raised.items())
-                      + "): runs their old budget stopped continue from their last epoch and are evaluated again")
+                      + "): runs the larger budget would not have stopped where the old one did continue from their last "
+                        "epoch and are evaluated again")
 
 
 def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = None) -> list[str]:

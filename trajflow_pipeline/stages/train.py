@@ -19,9 +19,12 @@ keeps the weights of its best validation epoch. A step whose gradients are not f
 * ``final/model.safetensors``      -- the trained model (:func:`trajflow_pipeline.model.load_model`); ``final/``
                                       appears only when training has finished.
 
-Larger budgets: ``--resume`` may raise ``train.ae_max_epochs`` / ``train.flow_max_epochs`` (nothing else). A stage
-that the old budget stopped continues from its last epoch (``end-<stage>.pt``) and every later stage is trained
-again; a stage that stopped early is not affected. The run's previous final model and evaluation stay on disk
+Larger budgets: ``--resume`` may raise a stage's epoch limit or its early-stopping patience
+(``train.ae_max_epochs`` / ``train.flow_max_epochs`` / ``train.ae_patience`` / ``train.flow_patience``; nothing
+else). A stage that the larger budget would not have stopped where the old one did continues from its last epoch
+(``end-<stage>.pt``) and every later stage is trained again; a stage that would have stopped there anyway (a raised
+limit on a stage that stopped early, or more patience than its last epochs needed) is not affected. Neither setting
+changes an epoch before the stop, so the continuation is the longer run's own path. The run's previous final model and evaluation stay on disk
 until the new model replaces them, but run.json says "training" meanwhile, so nothing evaluates the old one as
 the new. Because every epoch's randomness comes from (seed, stage, epoch), the result is the run a larger budget
 would have given from the start (with ``train.flow_select = "val_nll"``, the end state leaves out the sample-based
@@ -85,8 +88,14 @@ STAGE_END_FILE = "checkpoints/end-{stage}.pt"
 FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs",
                    "flow_min_epochs", "flow_patience", "flow_select", "flow_select_every", "flow_select_problems",
                    "flow_select_samples", "flow_select_max_pooled")
-#: Settings a resumed run may raise (its epoch budgets), with the gradient stage each one limits.
-BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow"}
+#: Settings a resumed run may raise (its epoch budgets: how long a stage may go on), with the gradient stage each
+#: one limits. None of them changes an epoch before the stage stops, which is what makes a raise exact.
+BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_patience": "autoencoder",
+               "flow_patience": "flow"}
+#: The budget keys as users write them, for messages.
+RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
+#: The prefix of each gradient stage's settings (train.<prefix>_max_epochs, _min_epochs, _patience).
+STAGE_PREFIX = {"autoencoder": "ae", "flow": "flow"}
 FINAL_DIR = "final"
 
 LOG_SCHEMA = {"epoch": pl.Int64, "stage": pl.String, "train_loss": pl.Float64, "val_loss": pl.Float64,
@@ -156,7 +165,7 @@ def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Se
         if raised is None:
             key = first_difference(saved, requested)
             raise UsageError(f"{run_dir} was started with a different configuration ({key}); resume it without "
-                             f"changing options (only train.ae_max_epochs / train.flow_max_epochs may be raised), "
+                             f"changing options (only {RAISABLE} may be raised), "
                              f"or train into a new directory")
         return _with_options(requested, None, None, device), saved
     if not resume and run_dir.exists() and any(run_dir.iterdir()):
@@ -190,11 +199,13 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
         return f"{run_dir}: {first_difference(saved, requested)} (only epoch budgets may be raised)"
     log = pl.read_parquet(run_dir / LOG_FILE) if (run_dir / LOG_FILE).is_file() else pl.DataFrame(schema=LOG_SCHEMA)
     stages = log.get_column("stage").to_list()
-    for key, (old_max, _) in raised.items():
+    for key, (old_value, _) in raised.items():
         stage = BUDGET_KEYS[key]
         later = any(s != stage for s in stages[stages.index(stage):]) if stage in stages else False
         finished = later or (stage == "flow" and _trained(run_dir))
-        if finished and stages.count(stage) >= old_max and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
+        # a raised limit matters only to a stage that reached it; more patience, to any stage that stopped
+        reached = stages.count(stage) >= old_value if key.endswith("_max_epochs") else True
+        if finished and reached and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
             return (f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states, so it cannot "
                     f"continue with a larger train.{key}")
     return None
@@ -775,33 +786,37 @@ class _Session:
 
     def _reopen(self, state: dict[str, Any], trained: RunConfig) -> tuple[dict[str, Any], bool]:
         """The state to continue from under the raised budgets of `config` over `trained`: the end state of the first
-        finished stage whose budget was raised and that its old budget stopped (not early stopping), and True; else
-        `state` and False. Stages after a reopened one are trained again from their start."""
+        finished stage whose budget was raised and that the new budget would not have stopped at its last epoch, and
+        True; else `state` and False. Stages after a reopened one are trained again from their start."""
         log_stages = [row["stage"] for row in state["log"]]
         for index, stage in enumerate(self.model.stages[:int(state["stage_index"])]):
-            key = next((k for k, limited in BUDGET_KEYS.items() if limited == stage), None)
-            if key is None or getattr(self.config.train, key) <= getattr(trained.train, key):
+            raised = [key for key, limited in BUDGET_KEYS.items()
+                      if limited == stage and getattr(self.config.train, key) > getattr(trained.train, key)]
+            if not raised:
                 continue
-            old_max, new_max = getattr(trained.train, key), getattr(self.config.train, key)
-            if log_stages.count(stage) < old_max:
-                self._say(f"{stage} stopped early ({log_stages.count(stage)} of {old_max} epochs): "
-                          f"train.{key} = {new_max} changes nothing there")
+            prefix = STAGE_PREFIX[stage]
+            old_max = getattr(trained.train, f"{prefix}_max_epochs")
+            new_max, new_min, new_patience = (getattr(self.config.train, f"{prefix}_{name}")
+                                              for name in ("max_epochs", "min_epochs", "patience"))
+            change = ", ".join(f"train.{key} {getattr(trained.train, key)} -> {getattr(self.config.train, key)}"
+                               for key in raised)
+            epochs = log_stages.count(stage)
+            if raised == [f"{prefix}_max_epochs"] and epochs < old_max:
+                self._say(f"{stage} stopped early ({epochs} of {old_max} epochs): {change} changes nothing there")
                 continue
             end_path = self.run_dir / STAGE_END_FILE.format(stage=stage)
             if not end_path.is_file():
                 raise UsageError(f"{self.run_dir}: its {stage} stage finished before trajflow kept stage-end states "
-                                 f"({end_path.name} is missing), so it cannot continue with a larger "
-                                 f"train.{key}; train into a new directory")
+                                 f"({end_path.name} is missing), so it cannot continue with {change}; train into a "
+                                 f"new directory")
             end = load_training_state(end_path, expected_model=self.model.name)
-            prefix = "ae" if stage == "autoencoder" else "flow"
-            min_epochs, patience = getattr(trained.train, f"{prefix}_min_epochs"), getattr(trained.train,
-                                                                                          f"{prefix}_patience")
-            if _should_stop(_progress_from(end), min_epochs, patience):
-                self._say(f"{stage} stopped early at its last epoch ({old_max}): train.{key} = {new_max} changes "
-                          "nothing there")
+            progress = _progress_from(end)
+            if progress.epoch >= new_max or _should_stop(progress, new_min, new_patience):
+                self._say(f"{stage} would have stopped at its last epoch ({epochs}) with {change} too: nothing "
+                          "changes there")
                 continue
             later = self.model.stages[index + 1:]
-            self._say(f"continuing {stage} after epoch {old_max} (train.{key} {old_max} -> {new_max})"
+            self._say(f"continuing {stage} after epoch {epochs} ({change})"
                       + (f"; then {', '.join(later)} from the start" if later else ""))
             return end, True
         return state, False
