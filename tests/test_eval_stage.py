@@ -262,6 +262,30 @@ def test_deleting_a_budget_override_raises_the_budget_to_what_the_config_now_giv
     assert evaluated != evaluated_before and evaluated >= finished
 
 
+def test_raising_an_experiments_patience_continues_the_runs_it_stopped_early(tmp_path: Path) -> None:
+    """More patience in the config continues a run whose flow stopped early and evaluates it again; a run that
+    cannot follow (its flow's end state is gone) stops the raise before anything changes. As above, a learning
+    rate too small to move a weight makes every validation loss the first one's: patience P stops after P + 1."""
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae"], [0])
+    config.write_text(config.read_text().replace(
+        '"train.flow_max_epochs=2"', '"train.flow_max_epochs=8", "train.flow_patience=2", "train.flow_lr=1e-30"'))
+    out = run_experiment(config, tmp_path / "exp", quiet=True)
+    flow_run = out / "runs" / "trajflow-no-ae-all-s0"
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 3
+    evaluated_before = json.loads((flow_run / "eval" / "eval.json").read_text())["date"]
+    raised = tmp_path / "raised.toml"
+    raised.write_text(config.read_text().replace('"train.flow_patience=2"', '"train.flow_patience=4"'))
+    run_experiment(raised, out, quiet=True)
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 5
+    assert json.loads((flow_run / "eval" / "eval.json").read_text())["date"] != evaluated_before
+    (flow_run / "checkpoints" / "end-flow.pt").unlink()
+    again = tmp_path / "again.toml"
+    again.write_text(raised.read_text().replace('"train.flow_patience=4"', '"train.flow_patience=6"'))
+    with pytest.raises(UsageError, match="cannot raise the budgets.*trajflow-no-ae-all-s0.*stage-end states"):
+        run_experiment(again, out, quiet=True)
+    assert (out / "config.toml").read_text() == raised.read_text()
+
+
 def test_a_budget_raised_for_one_run_by_hand_is_kept_by_the_experiment(tmp_path: Path) -> None:
     """`trajflow train --resume --set train.flow_max_epochs=N` beyond the experiment's budget, then eval: the
     experiment counts the run as done (it never lowers a budget), status shows the run's own budget, and a later
