@@ -491,6 +491,14 @@ def test_raised_patience_continues_a_stage_that_stopped_early(monkeypatch: pytes
     with pytest.raises(UsageError, match="end-flow.pt is missing.*flow_patience 4 -> 6"):
         train(data, run, resume=True, **options(6))
 
+    # Patience 0 (no early stopping) is the largest: raising to it runs the stage to its limit; leaving it, not.
+    unstopped = train(data, tmp_path / "unstopped", **options(1))
+    train(data, unstopped, resume=True, **options(0))
+    same_run(unstopped, train(data, tmp_path / "patience0", **options(0)))
+    assert log_of(unstopped).filter(pl.col("stage") == "flow").height == 12
+    with pytest.raises(UsageError, match="flow_patience"):
+        train(data, unstopped, resume=True, **options(3))
+
 
 def test_only_raised_budgets_may_change_on_resume(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     install_fake_data(monkeypatch, 64, 16)

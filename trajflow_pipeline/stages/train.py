@@ -24,9 +24,9 @@ Larger budgets: ``--resume`` may raise a stage's epoch limit or its early-stoppi
 else). A stage that the larger budget would not have stopped where the old one did continues from its last epoch
 (``end-<stage>.pt``) and every later stage is trained again; a stage that would have stopped there anyway (a raised
 limit on a stage that stopped early, or more patience than its last epochs needed) is not affected. Neither setting
-changes an epoch before the stop, so the continuation is the longer run's own path. The run's previous final model and evaluation stay on disk
-until the new model replaces them, but run.json says "training" meanwhile, so nothing evaluates the old one as
-the new. Because every epoch's randomness comes from (seed, stage, epoch), the result is the run a larger budget
+changes an epoch before the stop, so the continuation is the longer run's own path (a patience of 0, no early
+stopping, is the largest). The run's previous final model and evaluation stay on disk until the new model replaces
+them, but run.json says "training" meanwhile, so nothing evaluates the old one as the new. Because every epoch's randomness comes from (seed, stage, epoch), the result is the run a larger budget
 would have given from the start (with ``train.flow_select = "val_nll"``, the end state leaves out the sample-based
 check that only the end of the stage called for, which a longer run would not have made).
 
@@ -182,7 +182,14 @@ def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] |
         return None
     raised = {key: (getattr(old_train, key), getattr(new_train, key)) for key in BUDGET_KEYS
               if getattr(new_train, key) != getattr(old_train, key)}
-    return None if any(after < before for before, after in raised.values()) else raised
+    lowered = any(_budget_size(key, after) < _budget_size(key, before) for key, (before, after) in raised.items())
+    return None if lowered else raised
+
+
+def _budget_size(key: str, value: int) -> float:
+    """How long the budget `key` = `value` lets a stage go on, for ordering budgets: a patience of 0 disables early
+    stopping, so it is larger than any other."""
+    return math.inf if key.endswith("_patience") and value == 0 else float(value)
 
 
 def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
@@ -791,7 +798,8 @@ class _Session:
         log_stages = [row["stage"] for row in state["log"]]
         for index, stage in enumerate(self.model.stages[:int(state["stage_index"])]):
             raised = [key for key, limited in BUDGET_KEYS.items()
-                      if limited == stage and getattr(self.config.train, key) > getattr(trained.train, key)]
+                      if limited == stage and _budget_size(key, getattr(self.config.train, key))
+                      > _budget_size(key, getattr(trained.train, key))]
             if not raised:
                 continue
             prefix = STAGE_PREFIX[stage]
