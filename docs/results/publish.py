@@ -29,18 +29,21 @@ RUN_FILES = ("run.json", "config.toml", "train_log.parquet")
 FINAL_FILES = ("model.json", "model.safetensors")
 
 
+def publish_run(run: Path, target: Path) -> None:
+    """Copy what is published of the finished run `run` (RUN_FILES and final/) into the new directory `target`."""
+    (target / "final").mkdir(parents=True)
+    for name in RUN_FILES:
+        shutil.copy2(run / name, target / name)
+    for name in FINAL_FILES:
+        shutil.copy2(run / "final" / name, target / "final" / name)
+
+
 def publish_models(experiment: Path, models: Path) -> list[str]:
     """Rebuild `models/` from the experiment's finished runs (experiment.json `runs`); returns their names."""
     finished = json.loads((experiment / "experiment.json").read_text())["runs"]
     with atomic_directory(models) as staging:
         for relative in finished:
-            run = experiment / relative
-            target = staging / run.name
-            (target / "final").mkdir(parents=True)
-            for name in RUN_FILES:
-                shutil.copy2(run / name, target / name)
-            for name in FINAL_FILES:
-                shutil.copy2(run / "final" / name, target / "final" / name)
+            publish_run(experiment / relative, staging / Path(relative).name)
         if (models / "README.md").is_file():
             shutil.copy2(models / "README.md", staging / "README.md")
     return [Path(r).name for r in finished]
