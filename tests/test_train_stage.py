@@ -504,8 +504,8 @@ def test_only_raised_budgets_may_change_on_resume(monkeypatch: pytest.MonkeyPatc
     install_fake_data(monkeypatch, 64, 16)
     data = tmp_path / "data"
     run = train(data, tmp_path / "run", **budget_options(2, 2))
-    with pytest.raises(UsageError, match="flow_max_epochs.*only train.ae_max_epochs / train.flow_max_epochs / train.ae_patience / "
-                                         "train.flow_patience may be raised"):
+    with pytest.raises(UsageError, match="flow_max_epochs.*only train.ae_max_epochs / train.flow_max_epochs / "
+                                         "train.ae_patience / train.flow_patience may be raised"):
         train(data, run, resume=True, **budget_options(2, 1))
     with pytest.raises(UsageError, match="flow_lr"):
         train(data, run, resume=True, **budget_options(2, 4, "train.flow_lr=3e-4"))

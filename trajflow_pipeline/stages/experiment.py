@@ -288,8 +288,8 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
     if raised and not quiet:
         console.print("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new)
                                                           in raised.items())
-                      + "): runs the larger budget would not have stopped where the old one did continue from their last "
-                        "epoch and are evaluated again")
+                      + "): runs the larger budget would not have stopped where the old one did continue from "
+                        "their last epoch and are evaluated again")
 
 
 def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = None) -> list[str]:

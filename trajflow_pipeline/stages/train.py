@@ -26,9 +26,10 @@ else). A stage that the larger budget would not have stopped where the old one d
 limit on a stage that stopped early, or more patience than its last epochs needed) is not affected. Neither setting
 changes an epoch before the stop, so the continuation is the longer run's own path (a patience of 0, no early
 stopping, is the largest). The run's previous final model and evaluation stay on disk until the new model replaces
-them, but run.json says "training" meanwhile, so nothing evaluates the old one as the new. Because every epoch's randomness comes from (seed, stage, epoch), the result is the run a larger budget
-would have given from the start (with ``train.flow_select = "val_nll"``, the end state leaves out the sample-based
-check that only the end of the stage called for, which a longer run would not have made).
+them, but run.json says "training" meanwhile, so nothing evaluates the old one as the new. Because every epoch's
+randomness comes from (seed, stage, epoch), the result is the run a larger budget would have given from the start
+(with ``train.flow_select = "val_nll"``, the end state leaves out the sample-based check that only the end of the
+stage called for, which a longer run would not have made).
 
 Flow-only runs: ``autoencoder_from=RUN`` (``--autoencoder-from``) starts a new run at the end of RUN's autoencoder
 stage (``end-autoencoder.pt``) and trains only the flow. RUN must have the same model, data, fold and settings,
