@@ -286,6 +286,24 @@ def test_raising_an_experiments_patience_continues_the_runs_it_stopped_early(tmp
     assert (out / "config.toml").read_text() == raised.read_text()
 
 
+def test_no_early_stopping_set_for_one_run_by_hand_is_kept_by_the_experiment(tmp_path: Path) -> None:
+    """A patience of 0 (no early stopping) is larger than the experiment's patience: the experiment keeps the run as
+    it is, rather than asking it for a lower patience (and refusing)."""
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae"], [0])
+    config.write_text(config.read_text().replace(
+        '"train.flow_max_epochs=2"', '"train.flow_max_epochs=5", "train.flow_patience=2", "train.flow_lr=1e-30"'))
+    out = run_experiment(config, tmp_path / "exp", quiet=True)
+    flow_run = out / "runs" / "trajflow-no-ae-all-s0"
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 3
+    train(tmp_path / "data", flow_run, resume=True, overrides=["train.flow_patience=0"], quiet=True)
+    evaluate(flow_run, data=tmp_path / "data", options=EvalOptions(samples=10, k=5, workers=1), quiet=True)
+    log = (flow_run / "train_log.parquet").read_bytes()
+    assert pl.read_parquet(flow_run / "train_log.parquet").height == 5
+    run_experiment(config, out, quiet=True)
+    assert (flow_run / "train_log.parquet").read_bytes() == log
+    assert load_config(flow_run / "config.toml").train.flow_patience == 0
+
+
 def test_a_budget_raised_for_one_run_by_hand_is_kept_by_the_experiment(tmp_path: Path) -> None:
     """`trajflow train --resume --set train.flow_max_epochs=N` beyond the experiment's budget, then eval: the
     experiment counts the run as done (it never lowers a budget), status shows the run's own budget, and a later

@@ -483,6 +483,9 @@ def test_raised_patience_continues_a_stage_that_stopped_early(monkeypatch: pytes
     train(data, full, resume=True, **options(5, flow=2))
     assert (full / "final" / "model.safetensors").read_bytes() == before
     assert load_config(full / "config.toml").train.flow_patience == 5
+    (full / "checkpoints" / "end-flow.pt").unlink()  # not needed: the log shows the stage ran its whole budget
+    train(data, full, resume=True, **options(6, flow=2))
+    assert (full / "final" / "model.safetensors").read_bytes() == before
 
     # Less patience is not a budget raise, and an early-stopped stage without its end state cannot continue.
     with pytest.raises(UsageError, match="flow_patience"):

@@ -51,6 +51,7 @@ import threading
 import time
 import tomllib
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +68,7 @@ from ..util.claim import claim, claims_supported
 from ..util.progress import console
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
 from .runs import weights_digest
-from .train import BUDGET_KEYS, CONFIG_FILE, RUN_FILE, budget_raise, first_difference, raise_blocker
+from .train import BUDGET_KEYS, CONFIG_FILE, RUN_FILE, budget_raise, budget_size, first_difference, raise_blocker
 
 INGESTS = ("synthetic-bimodal", "eth-ucy")
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
@@ -305,7 +306,9 @@ def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = N
     budgets = load_config(overrides=[*given, f"model.name={model}"]).train
     saved_path = None if run_dir is None else run_dir / CONFIG_FILE
     own = load_config(saved_path).train if saved_path is not None and saved_path.is_file() else budgets
-    return [*given, *(f"train.{key}={max(getattr(budgets, key), getattr(own, key))}" for key in BUDGET_KEYS)]
+    larger = {key: max(getattr(budgets, key), getattr(own, key), key=partial(budget_size, key))
+              for key in BUDGET_KEYS}  # (a patience of 0, no early stopping, is the largest)
+    return [*given, *(f"train.{key}={value}" for key, value in larger.items())]
 
 
 def _run_config(config: ExperimentConfig, model: str) -> RunConfig:

@@ -183,11 +183,11 @@ def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] |
         return None
     raised = {key: (getattr(old_train, key), getattr(new_train, key)) for key in BUDGET_KEYS
               if getattr(new_train, key) != getattr(old_train, key)}
-    lowered = any(_budget_size(key, after) < _budget_size(key, before) for key, (before, after) in raised.items())
+    lowered = any(budget_size(key, after) < budget_size(key, before) for key, (before, after) in raised.items())
     return None if lowered else raised
 
 
-def _budget_size(key: str, value: int) -> float:
+def budget_size(key: str, value: int) -> float:
     """How long the budget `key` = `value` lets a stage go on, for ordering budgets: a patience of 0 disables early
     stopping, so it is larger than any other."""
     return math.inf if key.endswith("_patience") and value == 0 else float(value)
@@ -211,9 +211,11 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
         stage = BUDGET_KEYS[key]
         later = any(s != stage for s in stages[stages.index(stage):]) if stage in stages else False
         finished = later or (stage == "flow" and _trained(run_dir))
-        # a raised limit matters only to a stage that reached it; more patience, to any stage that stopped
-        reached = stages.count(stage) >= old_value if key.endswith("_max_epochs") else True
-        if finished and reached and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
+        # a raised limit matters only to a stage that reached it; more patience, to one that stopped below its limit
+        epochs = stages.count(stage)
+        matters = (epochs >= old_value if key.endswith("_max_epochs")
+                   else epochs < getattr(requested.train, f"{STAGE_PREFIX[stage]}_max_epochs"))
+        if finished and matters and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
             return (f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states, so it cannot "
                     f"continue with a larger train.{key}")
     return None
@@ -799,8 +801,8 @@ class _Session:
         log_stages = [row["stage"] for row in state["log"]]
         for index, stage in enumerate(self.model.stages[:int(state["stage_index"])]):
             raised = [key for key, limited in BUDGET_KEYS.items()
-                      if limited == stage and _budget_size(key, getattr(self.config.train, key))
-                      > _budget_size(key, getattr(trained.train, key))]
+                      if limited == stage and budget_size(key, getattr(self.config.train, key))
+                      > budget_size(key, getattr(trained.train, key))]
             if not raised:
                 continue
             prefix = STAGE_PREFIX[stage]
@@ -810,8 +812,8 @@ class _Session:
             change = ", ".join(f"train.{key} {getattr(trained.train, key)} -> {getattr(self.config.train, key)}"
                                for key in raised)
             epochs = log_stages.count(stage)
-            if raised == [f"{prefix}_max_epochs"] and epochs < old_max:
-                self._say(f"{stage} stopped early ({epochs} of {old_max} epochs): {change} changes nothing there")
+            if (raised == [f"{prefix}_max_epochs"] and epochs < old_max) or epochs >= new_max:
+                self._say(f"{stage} ran {epochs} of {old_max} epochs: {change} changes nothing there")
                 continue
             end_path = self.run_dir / STAGE_END_FILE.format(stage=stage)
             if not end_path.is_file():
