@@ -14,6 +14,9 @@ import polars as pl
 import pytest
 
 from test_eval_stage import write_tiny_experiment
+from typer.testing import CliRunner
+
+from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.stages.experiment import plan_order, run_experiment
 from trajflow_pipeline.util.claim import claim
 
@@ -59,6 +62,28 @@ def test_a_run_claimed_elsewhere_is_left_to_its_holder(tmp_path: Path) -> None:
     assert set(pl.read_parquet(out / "metrics.parquet").get_column("seed")) == {0, 2}
     run_experiment(config, out, quiet=True)
     assert json.loads((out / "experiment.json").read_text())["runs"] == [f"runs/cv-all-s{s}" for s in range(3)]
+
+
+def test_only_works_on_the_matching_runs_and_the_index_keeps_the_whole_plan(tmp_path: Path) -> None:
+    config = write_tiny_experiment(tmp_path, ["cv"], [0, 1, 2])
+    out = run_experiment(config, tmp_path / "exp", quiet=True, only=["cv-all-s1"])
+    index = json.loads((out / "experiment.json").read_text())
+    assert index["runs"] == ["runs/cv-all-s1"] and len(index["planned"]) == 3
+    assert sorted(p.name for p in (out / "runs").iterdir() if not p.name.startswith(".")) == ["cv-all-s1"]
+    run_experiment(config, out, quiet=True, only=["cv-all-s[02]"], jobs=2)
+    index = json.loads((out / "experiment.json").read_text())
+    assert index["runs"] == index["planned"]
+    assert set(pl.read_parquet(out / "metrics.parquet").get_column("seed")) == {0, 1, 2}
+
+
+def test_an_only_pattern_that_matches_no_run_is_refused_before_any_work(tmp_path: Path) -> None:
+    config = write_tiny_experiment(tmp_path, ["cv"], [0, 1])
+    result = CliRunner().invoke(app, ["experiment", str(config), "-o", str(tmp_path / "exp"), "--quiet",
+                                      "--only", "cv-all-s*", "--only", "flomo-*"])
+    assert result.exit_code == 2, result.output
+    assert "--only 'flomo-*' matches no run" in result.output and "cv-all-s0, cv-all-s1" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "exp" / "runs").exists()
 
 
 def test_jobs_share_the_runs_and_train_each_once(tmp_path: Path) -> None:

@@ -242,13 +242,18 @@ def experiment_command(
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help=(
         "Runs trained at once, in worker processes that share out the CPU threads. The same command may also be "
         "started again elsewhere: each run is claimed by one process."))] = 1,
+    only: Annotated[Optional[list[str]], typer.Option(
+        "--only", metavar="PATTERN", help=(
+            "Work only on the runs whose names (MODEL-FOLD-sSEED) match; shell patterns, repeatable, e.g. "
+            "--only flomo-zara2-s0 or --only 'trajflow-*'. To have one run done now beside a process that works "
+            "through the plan, or to split an experiment between machines."))] = None,
     quiet: Quiet = False,
 ) -> None:
     """Train and evaluate every model x fold x seed of a protocol; resumable, metrics collected in OUT."""
     from ..stages.experiment import run_experiment
 
     with user_errors():
-        result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs)
+        result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs, only=only or ())
     index = json.loads((result / "experiment.json").read_text())
     if not quiet and index["runs"] == index["planned"]:
         stdout.print(f"experiment done: {result} (make a report with `trajflow report {result} -o REPORT`)")

@@ -36,12 +36,15 @@ Several processes can work on one experiment directory: ``--jobs N`` starts N wo
 also be started again (another terminal, another node on a shared file system). Each run is claimed by one
 process (an OS file lock in ``EXP/runs/.<run>.lock``, released when its holder exits, however it exits); the
 others go on to the next run. On a CPU each of N workers gets 1/N of torch's threads: small models gain more
-from parallel runs than from threads.
+from parallel runs than from threads. ``--only PATTERN`` limits a process to the runs whose names match (shell
+patterns: ``flomo-zara2-s0``, ``'trajflow-*'``): to have one run trained now, beside a process that works through
+the plan, or to split an experiment between machines. The index still covers every finished run of the plan.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import fnmatch
 import json
 import multiprocessing
 import multiprocessing.connection
@@ -50,6 +53,7 @@ import signal
 import threading
 import time
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -224,9 +228,10 @@ def run_name(model: str, fold: str | None, seed: int) -> str:
 
 
 def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False,
-                   jobs: int = 1) -> Path:
+                   jobs: int = 1, only: Sequence[str] = ()) -> Path:
     """Train and evaluate every run of the experiment into `out` (resuming what an earlier call left), with `jobs`
-    worker processes. Runs that another process is working on are left to it (see the module docstring)."""
+    worker processes; with `only` (run-name patterns), just the runs that match. Runs that another process is
+    working on are left to it (see the module docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     if jobs > 1 and not claims_supported():
@@ -247,19 +252,36 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
         if blockers:
             raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
                              + ". Use a new -o for the larger budget")
+    selected = select_runs(plan, only)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", text)
     if jobs == 1:
-        _work(config, data, out, device=device, quiet=quiet)
+        _work(config, data, out, device=device, quiet=quiet, selected=selected)
     else:
-        _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs)
+        _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs, selected=selected)
     _write_index(out, config, data, plan)
-    elsewhere = [run_name(*key) for key in plan
-                 if not run_done(run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir))]
+    unfinished = [run_name(*key) for key in plan
+                  if not run_done(run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir))]
+    elsewhere = [name for name in unfinished if name in selected]
     if elsewhere and not quiet:
         console.print(f"[yellow]{len(elsewhere)} run(s) are still in progress in another process[/] "
                       f"({', '.join(elsewhere)}); the index includes them once they finish")
+    if len(elsewhere) < len(unfinished) and not quiet:
+        console.print(f"{len(unfinished) - len(elsewhere)} unfinished run(s) were not selected by --only")
     return out
+
+
+def select_runs(plan: list[tuple[str, str | None, int]], only: Sequence[str]) -> frozenset[str]:
+    """Names of the planned runs that match any of the shell patterns `only` (all of them when it is empty). A
+    pattern that matches no planned run is an error, so that a typo does not silently do nothing."""
+    names = [run_name(*key) for key in plan]
+    if not only:
+        return frozenset(names)
+    unmatched = [pattern for pattern in only if not fnmatch.filter(names, pattern)]
+    if unmatched:
+        raise UsageError(f"--only {', '.join(map(repr, unmatched))} matches no run of this experiment; its runs are "
+                         f"{', '.join(names)}")
+    return frozenset(name for name in names if any(fnmatch.fnmatchcase(name, pattern) for pattern in only))
 
 
 def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool) -> None:
@@ -378,14 +400,17 @@ def run_done(run_dir: Path, overrides: list[str]) -> bool:
 
 
 def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool, worker: str = "",
-          eval_options: EvalOptions | None = None) -> None:
-    """Go through the plan and do each run that is neither finished nor claimed by another process."""
+          eval_options: EvalOptions | None = None, selected: frozenset[str] | None = None) -> None:
+    """Go through the plan and do each run (of the `selected` names, if given) that is neither finished nor claimed
+    by another process."""
     from .train import train
 
     plan = _plan(config, data)
     note = (lambda message: console.print(f"{worker}{message}")) if not quiet else (lambda message: None)
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
+        if selected is not None and name not in selected:
+            continue
         run_dir = out / "runs" / name
         if run_done(run_dir, run_overrides(config, model, run_dir)):
             if not worker:  # N workers would say it N times
@@ -414,7 +439,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
 
 
 def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
-                       jobs: int) -> None:
+                       jobs: int, selected: frozenset[str]) -> None:
     """`jobs` worker processes each run :func:`_work`; torch threads and evaluation workers are shared out."""
     import torch
 
@@ -427,7 +452,7 @@ def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, devic
                       f"worker(s) each")
     context = multiprocessing.get_context("spawn")
     workers = [context.Process(target=_worker_main, name=f"experiment-worker-{i}",
-                               args=(config, data, out, device, quiet, f"(worker {i}) ", options, threads))
+                               args=(config, data, out, device, quiet, f"(worker {i}) ", options, threads, selected))
                for i in range(1, jobs + 1)]
     try:
         for process in workers:
@@ -448,7 +473,7 @@ def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, devic
 
 
 def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, quiet: bool, worker: str,
-                 options: EvalOptions, threads: int) -> None:
+                 options: EvalOptions, threads: int, selected: frozenset[str]) -> None:
     """Entry point of a worker process: limited torch threads, then the shared plan; errors end it with status 1."""
     import sys
 
@@ -457,7 +482,8 @@ def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, q
     _exit_with_parent()
     torch.set_num_threads(threads)
     try:
-        _work(config, data, out, device=device, quiet=quiet, worker=worker, eval_options=options)
+        _work(config, data, out, device=device, quiet=quiet, worker=worker, eval_options=options,
+              selected=selected)
     except TrajflowError as error:
         console.print(f"{worker}[red]error:[/] {error}")
         sys.exit(1)
