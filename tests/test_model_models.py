@@ -177,7 +177,7 @@ def test_flomo_noise_and_scaling_only_while_training() -> None:
 def _reference_rounds(gnn: SocialGNN, x: torch.Tensor, pos: torch.Tensor, onehot: torch.Tensor,
                       mask: torch.Tensor) -> torch.Tensor:
     """The GNN's rounds written as documented, edge by edge on the padded layout:
-    m_a = sum over valid b of MLP(x_b ++ x_a ++ class_b ++ class_a ++ (p_a - p_b) ++ |p_a - p_b|)."""
+    m_a = sum (or mean) over valid b of MLP(x_b ++ x_a ++ class_b ++ class_a ++ (p_a - p_b) ++ |p_a - p_b|)."""
     n, layers = mask.shape[1], len(gnn.update)
     rel = pos[:, :, None, :] - pos[:, None, :, :]                                    # [p, a, b] = p_a - p_b
     edge = torch.cat((onehot[:, None].expand(-1, n, -1, -1), onehot[:, :, None].expand(-1, -1, n, -1), rel,
@@ -187,16 +187,19 @@ def _reference_rounds(gnn: SocialGNN, x: torch.Tensor, pos: torch.Tensor, onehot
         pair = torch.cat((x[:, None].expand(-1, n, -1, -1), x[:, :, None].expand(-1, -1, n, -1), edge), dim=-1)
         hidden = torch.relu(torch.nn.functional.linear(pair, first, gnn.msg_sender[layer].bias))
         message = (gnn.msg_out[layer](hidden) * mask[:, None, :, None]).sum(2)
+        if gnn.aggregate == "mean":
+            message = message / mask.sum(1)[:, None, None]
         x = gnn.update[layer](torch.cat((x, message), dim=-1)) + x
     return x
 
 
-def test_gnn_dense_and_sparse_message_passing_match_the_documented_rounds() -> None:
+@pytest.mark.parametrize("aggregate", ["sum", "mean"])
+def test_gnn_dense_and_sparse_message_passing_match_the_documented_rounds(aggregate: str) -> None:
     batch = crowd_batch(6, neighbours=7)
     frame = target_frame(batch.past)
     nodes = social_nodes(batch, frame, to_local(batch.past, frame))
     torch.manual_seed(0)
-    gnn = SocialGNN()
+    gnn = SocialGNN(aggregate=aggregate)
     past, valid, mask, types = nodes
     onehot = torch.nn.functional.one_hot(types, 5).float()
     x = torch.randn(*mask.shape, 32)
@@ -216,6 +219,25 @@ def test_gnn_dense_and_sparse_message_passing_match_the_documented_rounds() -> N
         assert torch.allclose(result[0], reference[0], atol=1e-4)
         for grad, expected in zip(result[1:], reference[1:]):
             assert torch.allclose(grad, expected, rtol=1e-4, atol=1e-3)
+
+
+def test_averaged_messages_encode_a_crowd_of_copies_as_the_group_itself() -> None:
+    """With mean aggregation every agent doubled (same past, same place) gives the same encoding; summed
+    messages double, so the sum-aggregating GNN's encoding moves: what a model meets in a crowd."""
+    batch = crowd_batch(5, neighbours=6)
+    frame = target_frame(batch.past)
+    past, valid, mask, types = social_nodes(batch, frame, to_local(batch.past, frame))
+    doubled = [torch.cat((t, t), dim=1) for t in (past, valid, mask, types)]
+    moved = {}
+    for aggregate in ("mean", "sum"):
+        torch.manual_seed(0)
+        gnn = SocialGNN(aggregate=aggregate).double().eval()
+        with torch.no_grad():
+            group = gnn(past.double(), valid, mask, types)
+            crowd = gnn(doubled[0].double(), *doubled[1:])
+        moved[aggregate] = float((crowd - group).abs().max() / group.abs().max())
+    assert moved["mean"] < 1e-9
+    assert moved["sum"] > 1e-2
 
 
 def test_gnn_groups_problems_by_size_without_changing_the_result(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -76,13 +76,16 @@ OURS = sorted((CONFIGS.parent / "ours").glob("*.toml"))
 
 @pytest.mark.parametrize("path", OURS, ids=lambda p: p.stem)
 def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Path) -> None:
-    """configs/ours: a paper protocol (same data, runs and evaluation) with flow changes of ours (the model's
-    flow settings, and which flow weights training keeps)."""
+    """configs/ours: a paper protocol (same data, folds, seeds and evaluation; its models, or those of them our
+    change concerns, TrajFlow among them) with changes of ours to the flow model (the flow settings, which flow
+    weights training keeps, how the GNN that conditions it aggregates)."""
     ours = load_experiment(path)
-    paper = load_experiment(CONFIGS / f"{path.stem.split('_standardized')[0]}.toml")
-    for key in ("data_path", "ingest", "ingest_options", "models", "folds", "seeds", "eval_options"):
+    protocol = max((p for p in CONFIGS.glob("*.toml") if path.stem.startswith(p.stem + "_")), key=lambda p: len(p.stem))
+    paper = load_experiment(protocol)
+    for key in ("data_path", "ingest", "ingest_options", "folds", "seeds", "eval_options"):
         assert getattr(ours, key) == getattr(paper, key), key
-    assert ours.train_overrides and all(o.startswith(("model.flow_", "train.flow_select"))
+    assert "trajflow" in ours.models and set(ours.models) <= set(paper.models)
+    assert ours.train_overrides and all(o.startswith(("model.flow_", "train.flow_select", "model.gnn_aggregate"))
                                         for o in ours.train_overrides)
     load_config(overrides=list(ours.train_overrides))      # every override is a real, valid key
 

@@ -59,6 +59,9 @@ class ModelConfig:
     use_social: bool = True
     gnn_layers: int = 4
     gnn_width: int = 32
+    #: How a node combines its incoming messages: "sum" (the paper) or "mean" (not in the paper: the context of a
+    #: crowd then stays in the range of the smaller groups a model was trained on; see SocialGNN).
+    gnn_aggregate: str = "sum"
     # CNN over a heading-aligned grey-scale map crop; only built when the dataset has maps.
     use_map: bool = True
     map_height: int = 156
@@ -87,6 +90,9 @@ class ModelConfig:
                     "past_layers", "past_out", "gnn_layers", "gnn_width", "map_out"):
             if getattr(self, key) < 1:
                 raise UsageError(f"model.{key} must be at least 1")
+        if self.gnn_aggregate not in GNN_AGGREGATES:
+            raise UsageError(f"model.gnn_aggregate must be one of {', '.join(GNN_AGGREGATES)}, not "
+                             f"{self.gnn_aggregate!r}")
         if self.flow_bins < 2:
             raise UsageError("model.flow_bins must be at least 2")
         if self.map_height < 41 or self.map_width < 41:
@@ -100,6 +106,9 @@ class ModelConfig:
         if self.flomo_beta < 0 or self.flomo_gamma < 0 or self.flomo_scale_std < 0:
             raise UsageError("model.flomo_beta, flomo_gamma and flomo_scale_std must be non-negative")
 
+
+#: How the social GNN combines a node's incoming messages (ModelConfig.gnn_aggregate).
+GNN_AGGREGATES = ("sum", "mean")
 
 #: How a run picks the flow weights it keeps (TrainConfig.flow_select).
 FLOW_SELECTIONS = ("val_loss", "val_nll")

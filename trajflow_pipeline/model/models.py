@@ -160,7 +160,7 @@ class FlowModel(TrajectoryModel):
         social = None
         if config.use_social:
             node_past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
-            social = SocialGNN(config.gnn_width, config.gnn_layers, node_past)
+            social = SocialGNN(config.gnn_width, config.gnn_layers, node_past, aggregate=config.gnn_aggregate)
         map_encoder = None
         if config.use_map and spec.has_map:
             map_encoder = MapEncoder(config.map_height, config.map_width, config.map_out)
