@@ -76,6 +76,14 @@ def test_only_works_on_the_matching_runs_and_the_index_keeps_the_whole_plan(tmp_
     assert set(pl.read_parquet(out / "metrics.parquet").get_column("seed")) == {0, 1, 2}
 
 
+def test_jobs_beyond_the_selected_runs_do_not_take_their_share_of_the_threads(tmp_path: Path) -> None:
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae", "cv"], [0, 1])
+    out = run_experiment(config, tmp_path / "exp", quiet=True, jobs=2, only="trajflow-no-ae-all-s1")
+    info = json.loads((out / "runs" / "trajflow-no-ae-all-s1" / "run.json").read_text())
+    assert info["status"] == "finished" and info["cpu_threads"] == _torch_threads()
+    assert json.loads((out / "experiment.json").read_text())["runs"] == ["runs/trajflow-no-ae-all-s1"]
+
+
 def test_an_only_pattern_that_matches_no_run_is_refused_before_any_work(tmp_path: Path) -> None:
     config = write_tiny_experiment(tmp_path, ["cv"], [0, 1])
     result = CliRunner().invoke(app, ["experiment", str(config), "-o", str(tmp_path / "exp"), "--quiet",

@@ -253,6 +253,9 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
             raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
                              + ". Use a new -o for the larger budget")
     selected = select_runs(plan, only)
+    # Workers beyond the runs left to do would only idle while holding their share of the threads.
+    jobs = max(1, min(jobs, sum(not run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name))
+                                for model, fold, seed in plan if (name := run_name(model, fold, seed)) in selected)))
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", text)
     if jobs == 1:
@@ -273,11 +276,14 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
 
 def select_runs(plan: list[tuple[str, str | None, int]], only: Sequence[str]) -> frozenset[str]:
     """Names of the planned runs that match any of the shell patterns `only` (all of them when it is empty). A
-    pattern that matches no planned run is an error, so that a typo does not silently do nothing."""
+    pattern that matches no planned run is an error, so that a typo does not silently do nothing. Matching is
+    case-sensitive on every platform, as run directories are."""
     names = [run_name(*key) for key in plan]
+    if isinstance(only, str):
+        only = (only,)
     if not only:
         return frozenset(names)
-    unmatched = [pattern for pattern in only if not fnmatch.filter(names, pattern)]
+    unmatched = [pattern for pattern in only if not any(fnmatch.fnmatchcase(name, pattern) for name in names)]
     if unmatched:
         raise UsageError(f"--only {', '.join(map(repr, unmatched))} matches no run of this experiment; its runs are "
                          f"{', '.join(names)}")
