@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from .batch import NUM_AGENT_TYPES, SceneBatch
+from .config import GNN_AGGREGATES
 from .normalize import Frame, past_displacements, to_local
 
 
@@ -54,8 +55,8 @@ class SocialGNN(nn.Module):
     def __init__(self, width: int = 32, layers: int = 4, past: PastEncoder | None = None,
                  aggregate: str = "sum") -> None:
         super().__init__()
-        if aggregate not in ("sum", "mean"):
-            raise ValueError(f"aggregate must be 'sum' or 'mean', not {aggregate!r}")
+        if aggregate not in GNN_AGGREGATES:
+            raise ValueError(f"aggregate must be one of {', '.join(GNN_AGGREGATES)}, not {aggregate!r}")
         self.aggregate = aggregate
         self.past = past if past is not None else PastEncoder()
         self.embed = nn.Linear(self.past.out_features + NUM_AGENT_TYPES, width)
