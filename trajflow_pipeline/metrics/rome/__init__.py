@@ -1,0 +1,36 @@
+"""ROME, the TrajFlow paper's density estimator (Mészáros et al.), fitted to many same-shape point sets at once.
+
+Gives the numbers of the reference code (romepy 0.1.4 on scikit-learn) without it: docs/rome.md describes the
+algorithm and where each step matches the reference's arithmetic.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from trajflow_pipeline.metrics.rome.candidates import candidate_clusterings
+from trajflow_pipeline.metrics.rome.mixture import Mixture, fit_mixture
+from trajflow_pipeline.metrics.rome.optics import euclidean_distances, optics_graph
+from trajflow_pipeline.metrics.rome.selection import best_clustering, silhouette_distances
+
+#: ROME's default minimum standard deviation
+DEFAULT_MIN_STD = 0.1
+#: below this many points ROME does not cluster: all points form one cluster
+MIN_POINTS_TO_CLUSTER = 5
+
+
+def cluster(points: np.ndarray) -> np.ndarray:
+    """ROME's clustering (B, n) of each of B point sets (B, n, D): -1 for noise, clusters 0, 1, ..."""
+    n_sets, n, _ = points.shape
+    if n < MIN_POINTS_TO_CLUSTER:
+        return np.zeros((n_sets, n), dtype=np.int64)
+    graph = optics_graph(points, euclidean_distances(points))
+    return best_clustering(candidate_clusterings(graph), silhouette_distances(points))
+
+
+def fit(points: np.ndarray, min_std: float = DEFAULT_MIN_STD) -> Mixture:
+    """ROME fitted to each of B point sets (B, n, D) of finite float64 coordinates; see Mixture.log_density."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 3:
+        raise ValueError(f"points must be (sets, points, dimensions); got shape {points.shape}")
+    return fit_mixture(points, cluster(points), min_std)

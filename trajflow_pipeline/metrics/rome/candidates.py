@@ -1,0 +1,80 @@
+"""ROME's 199 candidate clusterings per point set: 100 DBSCAN cuts and 99 Xi extractions of its OPTICS graph."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from trajflow_pipeline.metrics.rome.optics import OpticsGraph
+from trajflow_pipeline.metrics.rome.xi import xi_plot_labels
+
+#: ROME's DBSCAN cuts: squares of 100 even steps in [0, 1], scaled to the finite reachability range
+EPS_STEPS = np.linspace(0, 1, 100) ** 2
+#: ROME's Xi steepness values
+XI_VALUES = np.linspace(0.01, 0.99, 99)
+#: ROME asks Xi for clusters of at least this many points
+MIN_CLUSTER_SIZE = 2
+#: lanes (point sets x xi values) x points per Xi block, to bound its working memory
+XI_BLOCK = 1 << 21
+
+
+def dbscan_plot_labels(graph: OpticsGraph) -> np.ndarray:
+    """(B, 100, n) labels in plot order of ROME's DBSCAN cuts (scikit-learn's cluster_optics_dbscan)."""
+    reach_plot = np.take_along_axis(graph.reachability, graph.ordering, axis=1)
+    core_plot = np.take_along_axis(graph.core, graph.ordering, axis=1)
+    finite = np.where(np.isfinite(graph.reachability), graph.reachability, np.nan)
+    low, high = np.nanmin(finite, axis=1), np.nanmax(finite, axis=1)
+    eps = EPS_STEPS[None, :] * (high - low)[:, None] + low[:, None]                 # (B, 100)
+    far = reach_plot[:, None, :] > eps[:, :, None]
+    near_core = core_plot[:, None, :] <= eps[:, :, None]
+    labels = np.cumsum(far & near_core, axis=2) - 1
+    labels[far & ~near_core] = -1
+    return labels
+
+
+def predecessor_positions(graph: OpticsGraph) -> np.ndarray:
+    """(B, n): for each plot position, the plot position of its point's predecessor (-1 for none)."""
+    n_sets, n = graph.ordering.shape
+    position = np.empty_like(graph.ordering)
+    np.put_along_axis(position, graph.ordering, np.broadcast_to(np.arange(n), (n_sets, n)), axis=1)
+    predecessor = np.take_along_axis(graph.predecessor, graph.ordering, axis=1)
+    return np.where(predecessor >= 0, np.take_along_axis(position, np.maximum(predecessor, 0), axis=1), -1)
+
+
+def xi_labels_in_plot_order(graph: OpticsGraph) -> np.ndarray:
+    """(B, 99, n) labels in plot order of ROME's Xi extractions, in blocks of point sets."""
+    n_sets, n = graph.ordering.shape
+    reach_plot = np.take_along_axis(graph.reachability, graph.ordering, axis=1)
+    predecessor = predecessor_positions(graph)
+    step = max(1, XI_BLOCK // (XI_VALUES.size * n))
+    return np.concatenate([
+        xi_plot_labels(reach_plot[s:s + step], predecessor[s:s + step], XI_VALUES, graph.min_samples,
+                       MIN_CLUSTER_SIZE)
+        for s in range(0, n_sets, step)], axis=0)
+
+
+def tidy(labels: np.ndarray) -> np.ndarray:
+    """ROME's clean-up of a candidate with more than one label: clusters of one point become noise (-1) and the
+    others are renumbered 0, 1, ... in the order of their old labels; a candidate with a single label becomes
+    all zeros. labels (..., n) with values in [-1, n)."""
+    shape = labels.shape
+    flat = labels.reshape(-1, shape[-1])
+    rows, n = flat.shape
+    buckets = flat + 1 + (n + 1) * np.arange(rows)[:, None]
+    counts = np.bincount(buckets.ravel(), minlength=rows * (n + 1)).reshape(rows, n + 1)
+    several = (counts > 0).sum(axis=1) > 1
+    kept = counts >= 2
+    kept[:, 0] = False
+    renumbered = np.cumsum(kept, axis=1) - 1
+    new = np.where(kept, renumbered, -1)
+    out = np.take_along_axis(new, flat + 1, axis=1)
+    out[~several] = 0
+    return out.reshape(shape)
+
+
+def candidate_clusterings(graph: OpticsGraph) -> np.ndarray:
+    """(B, 199, n) int64: ROME's candidates in its order (100 DBSCAN cuts, then 99 Xi values), in point order."""
+    plot_labels = np.concatenate([dbscan_plot_labels(graph), xi_labels_in_plot_order(graph)], axis=1)
+    plot_labels = tidy(plot_labels)
+    labels = np.empty_like(plot_labels)
+    np.put_along_axis(labels, np.broadcast_to(graph.ordering[:, None, :], labels.shape), plot_labels, axis=2)
+    return labels

@@ -1,0 +1,95 @@
+"""ROME's choice among its candidate clusterings: the best noise-weighted silhouette, first one on ties."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: ROME's score for a candidate it does not consider (a single label): below any silhouette
+UNSCORED = -1.1
+#: bytes of the per-candidate distance blocks scored at once
+SCORE_BLOCK_BYTES = 1 << 26
+
+
+def silhouette_distances(points: np.ndarray) -> np.ndarray:
+    """(B, n, n) distances as ROME computes them for its silhouettes (squared differences summed by numpy over the
+    last axis, then the square root), a few sets at a time."""
+    n_sets, n, n_features = points.shape
+    out = np.empty((n_sets, n, n))
+    step = max(1, SCORE_BLOCK_BYTES // (8 * n * n * n_features))
+    for start in range(0, n_sets, step):
+        block = points[start:start + step]
+        out[start:start + step] = np.sqrt(((block[:, :, None, :] - block[:, None, :, :]) ** 2).sum(-1))
+    return out
+
+
+def distinct_rows(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For candidates (B, C, n): (first, inverse) with `first` the flat indices (b * C + c) of each distinct
+    candidate of each set (first occurrence, in order) and `inverse` (B, C) the position in `first` of each
+    candidate's distinct twin."""
+    n_sets, n_candidates, n = labels.shape
+    flat = labels.reshape(-1, n)
+    weights = np.random.default_rng(0).random(n) + 1.0
+    keys = flat @ weights
+    order = np.lexsort((np.arange(flat.shape[0]), keys, np.repeat(np.arange(n_sets), n_candidates)))
+    ordered = flat[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = (order[1:] // n_candidates != order[:-1] // n_candidates) | (ordered[1:] != ordered[:-1]).any(axis=1)
+    group = np.cumsum(new) - 1
+    first_of_group = order[new]
+    inverse = np.empty(order.size, dtype=np.int64)
+    inverse[order] = group
+    # number the distinct candidates in the order of their first occurrence
+    rank = np.empty(first_of_group.size, dtype=np.int64)
+    by_position = np.argsort(first_of_group, kind="stable")
+    rank[by_position] = np.arange(first_of_group.size)
+    return first_of_group[by_position], rank[inverse].reshape(n_sets, n_candidates)
+
+
+def _silhouette_pair(distances: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """ROME's noise-weighted score of candidates (U, n) given their sets' distances (U, n, n): with noise as one
+    cluster and with each noise point its own cluster, scikit-learn's silhouette_score of each, mixed by the
+    noise fraction."""
+    n_candidates, n = labels.shape
+    n_buckets = int(labels.max()) + 2                                  # bucket 0 is the noise
+    buckets = labels + 1
+    one_hot = np.zeros((n_candidates, n, n_buckets))
+    np.put_along_axis(one_hot, buckets[:, :, None], 1.0, axis=2)
+    sums = np.matmul(distances, one_hot)                               # (U, n, K): distance sums to each bucket
+    sizes = one_hot.sum(axis=1)                                        # (U, K)
+    own = np.take_along_axis(sums, buckets[:, :, None], axis=2)[:, :, 0]
+    own_size = np.take_along_axis(sizes, buckets, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        intra = own / (own_size - 1)
+        means = sums / sizes[:, None, :]
+    means[np.broadcast_to(sizes[:, None, :] == 0, means.shape)] = np.inf
+    np.put_along_axis(means, buckets[:, :, None], np.inf, axis=2)
+    inter_combined = means.min(axis=2)
+    noise = labels == -1
+    means[:, :, 0] = np.inf
+    nearest_noise = np.where(noise[:, None, :], distances, np.inf).min(axis=2)
+    inter_separate = np.minimum(means.min(axis=2), nearest_noise)
+    intra_separate = np.where(noise, np.nan, intra)
+    scores = []
+    for inter, intra_of in ((inter_separate, intra_separate), (inter_combined, intra)):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            samples = (inter - intra_of) / np.maximum(intra_of, inter)
+        scores.append(np.nan_to_num(samples).mean(axis=1))
+    noise_fraction = noise.sum(axis=1) / n
+    return noise_fraction * scores[0] + (1 - noise_fraction) * scores[1]
+
+
+def best_clustering(candidates: np.ndarray, distances: np.ndarray) -> np.ndarray:
+    """(B, n): per set, ROME's chosen candidate among (B, C, n), scored with the sets' distances (B, n, n)."""
+    n_sets, n_candidates, n = candidates.shape
+    first, inverse = distinct_rows(candidates)
+    flat = candidates.reshape(-1, n)[first]
+    sets = first // n_candidates
+    useful = flat.max(axis=1) > flat.min(axis=1)
+    values = np.full(first.size, UNSCORED)
+    scored = np.flatnonzero(useful)
+    step = max(1, SCORE_BLOCK_BYTES // (8 * n * n * 4))
+    for start in range(0, scored.size, step):
+        rows = scored[start:start + step]
+        values[rows] = _silhouette_pair(distances[sets[rows]], flat[rows])
+    chosen = np.argmax(values[inverse], axis=1)
+    return candidates[np.arange(n_sets), chosen]
