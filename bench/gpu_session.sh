@@ -8,15 +8,15 @@
 #   bash bench/gpu_session.sh run        # there: device run, carry [".whl", "data/eth_ucy"], timeout_s 560
 #
 # The GPU image has torch, numpy 2, scipy, scikit-learn, pyarrow, typer, rich, matplotlib and safetensors, but not
-# polars, zuko or romepy; nothing can be downloaded there, so those travel as wheels (about 55 MB of the 64 MiB a
+# polars or zuko; nothing can be downloaded there, so those travel as wheels (about 55 MB of the 64 MiB a
 # call may carry). The package runs from the checkout on PYTHONPATH (`python3 -m trajflow_pipeline`), not
-# installed: pip there cannot resolve our numpy < 2 pin (which is romepy's and nuscenes-devkit's, not ours).
+# installed, so that pip leaves the image's own packages as they are.
 # Logs go to $OUT (the device tool brings them back). A dry run of `run` on a CPU machine checks the script itself:
 #   OUT=/tmp/out DEVICE=cpu EPOCHS=1 bash bench/gpu_session.sh run
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-WHEELS=(polars==2.1.0 polars-runtime-32==2.1.0 zuko==1.6.0 romepy==0.1.4)
+WHEELS=(polars==2.1.0 polars-runtime-32==2.1.0 zuko==1.6.0)
 
 prepare() {
     rm -rf .whl && mkdir -p .whl

@@ -76,20 +76,20 @@ def test_an_interrupted_evaluation_resumes_its_rome_fits(tiny_run: Path, tmp_pat
 
     run = Path(shutil.copytree(tiny_run, tmp_path / "run"))
     shutil.rmtree(run / "eval", ignore_errors=True)
-    real_fit, calls = parallel._fit_and_score, []
+    real_fit, calls = parallel._fit_batch, []
 
-    def fit_once(task, seed):
+    def fit_once(batch):
         if calls:
             raise KeyboardInterrupt
-        calls.append(seed)
-        return real_fit(task, seed)
+        calls.append(batch)
+        return real_fit(batch)
 
-    monkeypatch.setattr(parallel, "CACHE_EVERY", 1)
-    monkeypatch.setattr(parallel, "_fit_and_score", fit_once)
+    monkeypatch.setattr(parallel, "BATCH_FITS", 1)
+    monkeypatch.setattr(parallel, "_fit_batch", fit_once)
     with pytest.raises(KeyboardInterrupt):
         evaluate(run, options=FAST, quiet=True)
     assert not (run / "eval").exists() and list((run / "eval-cache").glob("*/part-*.npz"))
-    monkeypatch.setattr(parallel, "_fit_and_score", real_fit)
+    monkeypatch.setattr(parallel, "_fit_batch", real_fit)
     with claim(run / ".eval.lock"):  # another process evaluating the run: refused, the cache left alone
         with pytest.raises(UsageError, match="another process is evaluating this run"):
             evaluate(run, options=FAST, quiet=True)

@@ -1,40 +1,29 @@
-"""Run independent ROME density fits across processes, with identical numbers for any worker count.
+"""Run independent ROME density fits in same-shape batches, across processes, with identical numbers for any worker count.
 
-A ROME fit (OPTICS clustering, silhouette model selection over 199 candidate clusterings, per-cluster PCA
-whitening, Gaussian KDE) is the slow part of evaluation. On 100 x 24 points of real draws it takes about 0.03 s
-here, against 0.22 s for the library as it is: scikit-learn's input validation is skipped, and the shortcuts of
-:mod:`trajflow_pipeline.metrics.rome_shortcuts` avoid most of its per-call overhead; none of these changes a
-number (bench/rome_shortcuts.py checks every log-density). Everything else in `trajflow_pipeline.metrics` is
-vectorised numpy; the fits are the only per-task Python work, so this
-module spreads them over processes.
+A ROME fit (OPTICS clustering, silhouette choice among 199 candidate clusterings, per-cluster PCA whitening,
+Gaussian KDE) is the slow part of evaluation. Fits of one shape (n points of dimension D) are clustered together
+by :mod:`trajflow_pipeline.metrics.rome`, one batched array program; batches are spread over processes.
 
-Determinism: every task is run with BLAS / OpenMP limited to one thread (which is also ~2.5x faster for
-these small problems than letting OpenBLAS use several threads) and with numpy's global RNG seeded from the
-task's index in the list (ROME itself is deterministic given its input, but it and scikit-learn may touch
-the global RNG). A task's result therefore depends only on its data and index, never on which process or
-in which order it ran: serial and parallel runs give bit-identical arrays.
+Determinism: every batch runs with BLAS / OpenMP limited to one thread (also faster for these small problems), and
+the estimator uses no random numbers, so a fit's result depends only on its task: serial and parallel runs, and any
+batching, give bit-identical arrays.
 
-ROME prints "PCA failed, was done again with different random start." to stdout when a cluster's covariance is
-singular and it retries with added jitter (its own fallback; the fit goes on). Those lines would land in the
-middle of progress bars and tables, so they are counted instead, and :func:`run_rome_tasks` says once how many
-fits needed the fallback (and adds them to a :class:`RomeTally` tally when given one, which is how
-`trajflow eval` records them in eval.json even when quiet).
+ROME re-runs a cluster's PCA with added jitter when it fails (a singular covariance); those fits are counted, and
+:func:`run_rome_tasks` says once how many needed the fallback (and adds them to a :class:`RomeTally` when given
+one, which is how `trajflow eval` records them in eval.json even when quiet).
 
 Workers are never forked from the calling process: the eval stage has used torch's thread pools before the
 metrics run, and forking a process with live OpenMP threads can deadlock the child. They come from a
-'forkserver' (a fresh, single-threaded interpreter that has imported ROME / scikit-learn once, ~2-3 s,
-and then forks each worker cheaply; it lives as long as the calling process, so later pools start at
-once), or from 'spawn' where forkserver does not exist (Windows). Worker functions are top level, so both
-start methods can import them.
+'forkserver' (a fresh, single-threaded interpreter that has imported the estimator once and then forks each
+worker cheaply; it lives as long as the calling process, so later pools start at once), or from 'spawn' where
+forkserver does not exist (Windows). Worker functions are top level, so both start methods can import them.
 """
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing
 import os
-import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,13 +32,16 @@ import numpy as np
 
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
-from trajflow_pipeline.metrics.rome_shortcuts import romepy_audited, shortcuts
+from trajflow_pipeline.metrics import rome
+from trajflow_pipeline.metrics.rome.reference import ReferenceDensity
 from trajflow_pipeline.util.progress import console, make_progress
 
 #: ROME's default minimum standard deviation (metres here); the reference framework uses the default too.
 DEFAULT_MIN_STD = 0.1
-#: with a cache and one worker, finished fits are saved every this many (about 20-30 s of fitting)
-CACHE_EVERY = 256
+#: most points x points x fits clustered in one batch (bounds a batch's working memory to a few hundred MB)
+BATCH_BUDGET = 1 << 21
+#: most fits in one batch (also how often, at most, finished fits are saved to a cache)
+BATCH_FITS = 256
 
 
 @dataclass(frozen=True)
@@ -93,24 +85,13 @@ def resolve_workers(workers: int | None) -> int:
     return int(workers)
 
 
-def fit_and_score(task: RomeTask, seed: int) -> tuple[np.ndarray, ...]:
-    """Fit ROME on `task.fit` and return the log-density at each query array (float64); see `_fit_and_score`."""
-    return _fit_and_score(task, seed)[0]
+def fit_and_score(task: RomeTask, seed: int = 0) -> tuple[np.ndarray, ...]:
+    """Fit ROME on `task.fit` and return the log-density at each query array (float64); see `_fit_batch`."""
+    return _fit_batch([task])[0][0]
 
 
-def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], int]:
-    """Fit ROME on `task.fit`; return the log-density at each query array (float64) and how many times ROME fell
-    back to re-running a failed PCA with jitter (0 for most fits).
-
-    Runs in whichever process calls it; BLAS / OpenMP threads are limited to one and numpy's global RNG is
-    seeded with `seed` so that the result is a function of (task, seed) only. Those settings and our shortcuts
-    are process-wide, so fits from several threads of one process take turns. Finiteness is checked here once
-    (of the points, and of their squared extent, which bounds every distance ROME computes), and scikit-learn's
-    own (repeated) input validation is switched off for speed. ROME's `score_samples`
-    returns a natural-log density (log-sum-exp over clusters of KDE log-densities, each computed in log
-    space), so points far from every sample get a very negative but finite value, never -inf: no floor
-    is applied. A non-finite result can only come from a degenerate fit and is reported as a DataError.
-    """
+def _check_task(task: RomeTask) -> None:
+    """DataError unless the task's points and queries are finite and their distances fit in double precision."""
     if not (np.isfinite(task.fit).all() and all(np.isfinite(q).all() for q in task.queries)):
         raise DataError(f"non-finite values in the points of {task.label}")
     with np.errstate(over="ignore"):
@@ -118,68 +99,53 @@ def _fit_and_score(task: RomeTask, seed: int) -> tuple[tuple[np.ndarray, ...], i
     if not np.isfinite(extent):
         raise DataError(f"the points of {task.label} are too far apart for a density estimate (their distances "
                         "overflow double precision): are they in the right units?")
-    import sklearn
-    from rome.ROME import ROME
+    dimension = task.fit.shape[1]
+    for query in task.queries:
+        if np.ndim(query) != 2 or np.shape(query)[1] != dimension:
+            raise DataError(f"the queries of {task.label} have shape {np.shape(query)}; the density is over "
+                            f"{dimension} dimensions")
+
+
+def _fit_batch(tasks: Sequence[RomeTask]) -> list[tuple[tuple[np.ndarray, ...], int]]:
+    """Fit ROME on each task's points (all of one shape) and return, per task, the log-density at each of its query
+    arrays and how many times a cluster's PCA was re-run with jitter (ROME's fallback; 0 for most fits).
+
+    The clusterings of all fits are one batched computation (`trajflow_pipeline.metrics.rome`); each fit's
+    density is then made on its clusters as the reference makes it. BLAS and OpenMP run on one thread (faster for
+    these small problems, and reproducible), so a result is a function of its task alone. ROME's log-density is a
+    log-sum-exp over clusters of KDE log-densities computed in log space: far from every sample it is very negative
+    but finite, never -inf, so no floor is applied. A non-finite result can only come from a degenerate fit and is
+    reported as a DataError.
+    """
     from threadpoolctl import threadpool_limits
 
-    # One BLAS / OpenMP thread (faster for these small problems, and reproducible); scikit-learn's input
-    # and parameter validation skipped (inputs are checked finite float64 here; ~20 % of a fit's time,
-    # numbers unchanged); the shortcuts of rome_shortcuts (numbers unchanged too).
-    with _ONE_FIT_AT_A_TIME, threadpool_limits(limits=1), \
-            sklearn.config_context(assume_finite=True, skip_parameter_validation=True), shortcuts(), \
-            _rome_messages_counted() as messages:
-        np.random.seed(seed % (2**32))
-        model = ROME(min_std=task.min_std).fit(np.ascontiguousarray(task.fit, dtype=np.float64))
-        out = tuple(np.asarray(model.score_samples(np.ascontiguousarray(q, dtype=np.float64)), dtype=np.float64)
-                    for q in task.queries)
-    for values in out:
-        if not np.all(np.isfinite(values)):
-            raise DataError(f"ROME returned a non-finite log-density for {task.label} "
-                            f"({task.fit.shape[0]} points of dimension {task.fit.shape[1]}): "
-                            "the sample set is degenerate")
-    return out, sum(PCA_RETRY_MESSAGE in message for message in messages)
-
-
-#: Held while a fit runs: the RNG seed, thread limits and module patches of a fit are process-wide, and two threads
-#: patching and restoring the same attributes could leave them patched.
-_ONE_FIT_AT_A_TIME = threading.RLock()
-
-#: What ROME prints (once per failed attempt) when it re-runs a cluster's PCA with jitter.
-PCA_RETRY_MESSAGE = "PCA failed"
-
-
-@contextlib.contextmanager
-def _rome_messages_counted() -> Iterator[list[str]]:
-    """While active, what ROME's module prints is collected in the yielded list instead of reaching stdout.
-
-    ROME calls the built-in ``print``; a module-level ``print`` shadows it for that module only, so nothing else
-    that writes to stdout meanwhile (a progress bar's refresh thread) is affected.
-    """
-    import rome.ROME as rome_module
-
-    messages: list[str] = []
-    def collect(*args: object, **kwargs: object) -> None:
-        messages.append(" ".join(str(a) for a in args))
-
-    shadowed = rome_module.__dict__.get("print")  # set only while another capture is active
-    rome_module.print = collect  # type: ignore[attr-defined]
-    try:
-        yield messages
-    finally:
-        if shadowed is None:
-            del rome_module.print  # type: ignore[attr-defined]
-        else:
-            rome_module.print = shadowed  # type: ignore[attr-defined]
+    for task in tasks:
+        _check_task(task)
+    points = np.stack([np.ascontiguousarray(task.fit, dtype=np.float64) for task in tasks])
+    out: list[tuple[tuple[np.ndarray, ...], int]] = []
+    with threadpool_limits(limits=1):
+        labels = rome.cluster(points)
+        for task, fit_points, fit_labels in zip(tasks, points, labels):
+            density = ReferenceDensity(fit_points, fit_labels, task.min_std)
+            values = tuple(np.asarray(density.log_density(np.ascontiguousarray(q, dtype=np.float64)),
+                                      dtype=np.float64) for q in task.queries)
+            for value in values:
+                if not np.all(np.isfinite(value)):
+                    raise DataError(f"ROME returned a non-finite log-density for {task.label} "
+                                    f"({task.fit.shape[0]} points of dimension {task.fit.shape[1]}): "
+                                    "the sample set is degenerate")
+            out.append((values, density.pca_retries))
+    return out
 
 
 def _run_batch(batch: list[tuple[int, RomeTask]],
                base_seed: int) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
-    """Worker entry point (top level, so 'spawn' can import it): run a batch of (index, task) pairs."""
-    return [(index, _fit_and_score(task, base_seed + index)) for index, task in batch]
+    """Worker entry point (top level, so 'spawn' can import it): fit a batch of (index, task) pairs of one shape."""
+    return [(index, result) for (index, _), result in zip(batch, _fit_batch([task for _, task in batch]))]
 
 
-#: Modules the forkserver imports once, so that forked workers start with ROME ready.
-_PRELOAD = ["trajflow_pipeline.metrics.parallel", "rome.ROME", "threadpoolctl"]
+#: Modules the forkserver imports once, so that forked workers start with the estimator ready.
+_PRELOAD = ["trajflow_pipeline.metrics.parallel", "sklearn.neighbors", "sklearn.decomposition", "threadpoolctl"]
 
 
 def _pool_context() -> multiprocessing.context.BaseContext:
@@ -206,11 +172,18 @@ def _saved(store: RomeCache | None, finished: list[Finished], quiet: bool) -> Ro
     return store
 
 
-def _batches(n_tasks: int, workers: int) -> list[range]:
-    """Split task indices into contiguous batches: ~8 per worker amortises IPC and keeps the bar moving."""
-    n_batches = min(n_tasks, workers * 8)
-    bounds = np.linspace(0, n_tasks, n_batches + 1).round().astype(int)
-    return [range(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+def _batches(tasks: Sequence[RomeTask], todo: list[int], workers: int) -> list[list[int]]:
+    """Task indices in batches of one fit shape, in task order within each: at most BATCH_FITS fits and
+    BATCH_BUDGET points squared per batch, and at least ~4 batches per worker when there are enough fits."""
+    by_shape: dict[tuple[int, int], list[int]] = {}
+    for index in todo:
+        by_shape.setdefault(tuple(np.shape(tasks[index].fit)), []).append(index)
+    spread = max(1, -(-len(todo) // (4 * workers))) if workers > 1 else BATCH_FITS
+    batches = []
+    for (n_points, _), indices in by_shape.items():
+        size = max(1, min(BATCH_FITS, spread, BATCH_BUDGET // max(1, n_points * n_points)))
+        batches += [indices[i:i + size] for i in range(0, len(indices), size)]
+    return sorted(batches)
 
 
 def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, quiet: bool = False,
@@ -219,7 +192,8 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     """Run independent ROME tasks and return, in task order, each task's tuple of log-density arrays.
 
     `workers` processes (default: all cores; 1 runs in this process, as does a single task) share the
-    tasks; task `i` is seeded with `base_seed + i`, so the numbers are identical for any `workers`.
+    tasks in batches of one fit shape; the numbers are identical for any `workers` and any batching.
+    `base_seed` names the task list in a cache (the estimator itself draws no random numbers).
     A rich progress bar counts finished fits unless `quiet`, and a note says how many fits needed ROME's PCA
     fallback (see the module docstring) when any did; `fallbacks`, when given, adds this call's counts to it.
     With `cache` (a directory), finished fits are saved as they come and a rerun over the same tasks fits only
@@ -231,31 +205,25 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     retries = np.zeros(n_tasks, dtype=np.int64)
     if n_tasks == 0:
         return []
-    store = (RomeCache(cache, tasks, base_seed, patched=romepy_audited())
-             if cache is not None else None)
+    store = RomeCache(cache, tasks, base_seed) if cache is not None else None
     for index, (values, retried) in (store.load() if store is not None else {}).items():
         results[index], retries[index] = values, retried
     todo = [index for index, result in enumerate(results) if result is None]
     resumed = n_tasks - len(todo)
     if resumed and not quiet:
         console.print(f"[dim]{description}: {resumed} of {n_tasks} fits resumed from {store.directory}[/]")
+    batches = _batches(tasks, todo, n_workers)
     progress = make_progress(quiet)
     with progress:
         bar = progress.add_task(description, total=n_tasks, completed=resumed)
-        if n_workers == 1 or len(todo) <= 1:
-            pending: list[Finished] = []
-            try:
-                for index in todo:
-                    finished = _fit_and_score(tasks[index], base_seed + index)
-                    results[index], retries[index] = finished
-                    pending.append((index, finished))
-                    if len(pending) >= CACHE_EVERY:
-                        store, pending = _saved(store, pending, quiet), []
-                    progress.advance(bar)
-            finally:  # what was fitted before an interruption is kept too
-                store = _saved(store, pending, quiet)
+        if n_workers == 1 or len(batches) <= 1:
+            for batch in batches:
+                done = _run_batch([(i, tasks[i]) for i in batch], base_seed)
+                for index, (values, retried) in done:
+                    results[index], retries[index] = values, retried
+                store = _saved(store, done, quiet)
+                progress.advance(bar, len(done))
         else:
-            batches = [[todo[i] for i in batch] for batch in _batches(len(todo), n_workers)]
             with ProcessPoolExecutor(max_workers=min(n_workers, len(batches)), mp_context=_pool_context()) as pool:
                 futures = [pool.submit(_run_batch, [(i, tasks[i]) for i in batch], base_seed) for batch in batches]
                 unsaved = set(futures)

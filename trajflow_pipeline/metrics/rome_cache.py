@@ -4,8 +4,7 @@ The ROME fits are most of an evaluation's time (an hour and more for a large tes
 result depends only on its task, its seed and the fitting code (see :mod:`trajflow_pipeline.metrics.parallel`).
 So finished fits are saved in parts, each written atomically and synced, under ``ROOT/<digest>/``. The digest
 covers every task's points, queries and minimum standard deviation, the seed, the number and order of the tasks,
-and what fits them: the versions of romepy, scikit-learn, numpy and scipy, whether our candidate-selection shortcut
-is active (the faster silhouettes and skipped checks change no bit, tested, so fits saved before them still count),
+and what fits them: the estimator's version (:data:`ESTIMATOR`), the versions of scikit-learn, numpy and scipy,
 this module's format version and the processor model (BLAS kernels differ between CPUs in the last bits). A rerun
 over the very same tasks on the same setup loads the saved fits and fits only the rest; anything else gets a
 directory of its own and never mixes. Loaded fits are checked against their tasks (count and length of the query
@@ -33,7 +32,9 @@ from ..util.atomic import atomic_file
 #: one finished task: its index, its log-density arrays (one per query) and its count of PCA retries
 Finished = tuple[int, tuple[tuple[np.ndarray, ...], int]]
 #: bump when the way a task is fitted or saved changes, so that older saved fits are not reused
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: the estimator that made the saved fits (trajflow_pipeline.metrics.rome); bump when its numbers change
+ESTIMATOR = "trajflow-rome-1"
 #: the file in each digest directory that says how many tasks the list has (for progress displays)
 MANIFEST = "tasks.json"
 
@@ -41,9 +42,9 @@ MANIFEST = "tasks.json"
 class RomeCache:
     """The saved results of one list of ROME tasks (see the module docstring)."""
 
-    def __init__(self, root: Path, tasks: Sequence[Any], base_seed: int, *, patched: bool) -> None:
+    def __init__(self, root: Path, tasks: Sequence[Any], base_seed: int) -> None:
         self.tasks = tasks
-        self.directory = Path(root) / _digest(tasks, base_seed, patched)
+        self.directory = Path(root) / _digest(tasks, base_seed)
 
     def load(self) -> dict[int, tuple[tuple[np.ndarray, ...], int]]:
         """Every finished task saved so far (index -> result) that matches its task; a part that cannot be read,
@@ -123,10 +124,10 @@ def _read_part(path: Path) -> list[tuple[int, tuple[np.ndarray, ...], int]]:
             for row, index in enumerate(indices.tolist())]
 
 
-def _digest(tasks: Sequence[Any], base_seed: int, patched: bool) -> str:
+def _digest(tasks: Sequence[Any], base_seed: int) -> str:
     """A digest of everything a list of ROME tasks' results depend on (see the module docstring)."""
     digest = hashlib.sha256(json.dumps({"format": FORMAT_VERSION, "seed": base_seed, "tasks": len(tasks),
-                                        "patched": patched, "setup": _setup()}, sort_keys=True).encode())
+                                        "estimator": ESTIMATOR, "setup": _setup()}, sort_keys=True).encode())
     for task in tasks:
         arrays = [task.fit, *task.queries]
         digest.update(struct.pack("<dq", float(task.min_std), len(arrays)))
@@ -143,7 +144,7 @@ def _setup() -> dict[str, str]:
     from ..util.provenance import machine_description
 
     versions = {}
-    for package in ("romepy", "scikit-learn", "numpy", "scipy"):
+    for package in ("scikit-learn", "numpy", "scipy"):
         try:
             versions[package] = importlib.metadata.version(package)
         except importlib.metadata.PackageNotFoundError:
