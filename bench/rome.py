@@ -23,7 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from trajflow_pipeline.metrics.parallel import RomeTask, run_rome_tasks
+# this file is bench/rome.py: keep its folder off the import path, so that `import rome` finds romepy
+sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+from trajflow_pipeline.metrics.parallel import RomeTask, run_rome_tasks  # noqa: E402
 
 PREVIOUS = """
 import sys, time, numpy as np

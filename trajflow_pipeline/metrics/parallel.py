@@ -117,13 +117,15 @@ def _fit_batch(tasks: Sequence[RomeTask]) -> list[tuple[tuple[np.ndarray, ...], 
     but finite, never -inf, so no floor is applied. A non-finite result can only come from a degenerate fit and is
     reported as a DataError.
     """
+    import sklearn
     from threadpoolctl import threadpool_limits
 
     for task in tasks:
         _check_task(task)
     points = np.stack([np.ascontiguousarray(task.fit, dtype=np.float64) for task in tasks])
     out: list[tuple[tuple[np.ndarray, ...], int]] = []
-    with threadpool_limits(limits=1):
+    # inputs are checked finite float64 above, so scikit-learn's repeated validation is skipped (public settings)
+    with threadpool_limits(limits=1), sklearn.config_context(assume_finite=True, skip_parameter_validation=True):
         labels = rome.cluster(points)
         for task, fit_points, fit_labels in zip(tasks, points, labels):
             density = ReferenceDensity(fit_points, fit_labels, task.min_std)

@@ -52,12 +52,36 @@ def xi_labels_in_plot_order(graph: OpticsGraph) -> np.ndarray:
         for s in range(0, n_sets, step)], axis=0)
 
 
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, inverse) for integer rows (R, n): the index of each distinct row's first occurrence, ascending, and
+    for every row the position of its distinct twin in `first`. Rows are grouped by a linear key and then
+    compared in full, so a key collision only costs a repeated row, never a wrong one."""
+    keys = rows @ (np.random.default_rng(0).random(rows.shape[1]) + 1.0)
+    order = np.lexsort((np.arange(rows.shape[0]), keys))
+    ordered = rows[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
+    group = np.cumsum(new) - 1
+    first = order[new]
+    by_position = np.argsort(first, kind="stable")
+    rank = np.empty(first.size, dtype=np.int64)
+    rank[by_position] = np.arange(first.size)
+    inverse = np.empty(order.size, dtype=np.int64)
+    inverse[order] = rank[group]
+    return first[by_position], inverse
+
+
 def tidy(labels: np.ndarray) -> np.ndarray:
     """ROME's clean-up of a candidate with more than one label: clusters of one point become noise (-1) and the
     others are renumbered 0, 1, ... in the order of their old labels; a candidate with a single label becomes
-    all zeros. labels (..., n) with values in [-1, n)."""
+    all zeros. labels (..., n) with values in [-1, n); each distinct candidate is tidied once."""
     shape = labels.shape
-    flat = labels.reshape(-1, shape[-1])
+    first, inverse = unique_rows(labels.reshape(-1, shape[-1]))
+    return _tidy_rows(labels.reshape(-1, shape[-1])[first])[inverse].reshape(shape)
+
+
+def _tidy_rows(flat: np.ndarray) -> np.ndarray:
+    """`tidy` of rows (R, n)."""
     rows, n = flat.shape
     buckets = flat + 1 + (n + 1) * np.arange(rows)[:, None]
     counts = np.bincount(buckets.ravel(), minlength=rows * (n + 1)).reshape(rows, n + 1)
@@ -68,7 +92,7 @@ def tidy(labels: np.ndarray) -> np.ndarray:
     new = np.where(kept, renumbered, -1)
     out = np.take_along_axis(new, flat + 1, axis=1)
     out[~several] = 0
-    return out.reshape(shape)
+    return out
 
 
 def candidate_clusterings(graph: OpticsGraph) -> np.ndarray:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from trajflow_pipeline.metrics.rome.candidates import unique_rows
+
 #: ROME's score for a candidate it does not consider (a single label): below any silhouette
 UNSCORED = -1.1
 #: bytes of the per-candidate distance blocks scored at once
@@ -24,25 +26,12 @@ def silhouette_distances(points: np.ndarray) -> np.ndarray:
 
 def distinct_rows(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For candidates (B, C, n): (first, inverse) with `first` the flat indices (b * C + c) of each distinct
-    candidate of each set (first occurrence, in order) and `inverse` (B, C) the position in `first` of each
-    candidate's distinct twin."""
+    candidate of each set (first occurrence, ascending) and `inverse` (B, C) the position in `first` of each
+    candidate's distinct twin. A candidate's set is part of its identity."""
     n_sets, n_candidates, n = labels.shape
-    flat = labels.reshape(-1, n)
-    weights = np.random.default_rng(0).random(n) + 1.0
-    keys = flat @ weights
-    order = np.lexsort((np.arange(flat.shape[0]), keys, np.repeat(np.arange(n_sets), n_candidates)))
-    ordered = flat[order]
-    new = np.ones(order.size, dtype=bool)
-    new[1:] = (order[1:] // n_candidates != order[:-1] // n_candidates) | (ordered[1:] != ordered[:-1]).any(axis=1)
-    group = np.cumsum(new) - 1
-    first_of_group = order[new]
-    inverse = np.empty(order.size, dtype=np.int64)
-    inverse[order] = group
-    # number the distinct candidates in the order of their first occurrence
-    rank = np.empty(first_of_group.size, dtype=np.int64)
-    by_position = np.argsort(first_of_group, kind="stable")
-    rank[by_position] = np.arange(first_of_group.size)
-    return first_of_group[by_position], rank[inverse].reshape(n_sets, n_candidates)
+    tagged = np.concatenate([np.repeat(np.arange(n_sets), n_candidates)[:, None], labels.reshape(-1, n)], axis=1)
+    first, inverse = unique_rows(tagged)
+    return first, inverse.reshape(n_sets, n_candidates)
 
 
 def _silhouette_pair(distances: np.ndarray, labels: np.ndarray) -> np.ndarray:
