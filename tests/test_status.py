@@ -244,7 +244,7 @@ def test_an_evaluation_in_progress_shows_its_saved_fits(tmp_path: Path) -> None:
     out = write_experiment(tmp_path / "exp")
     run = write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0, -2.0]))
     tasks = [RomeTask(fit=np.zeros((3, 2)), queries=(np.zeros((1, 2)),)) for _ in range(5)]
-    cache = RomeCache(run / "eval-cache", tasks, base_seed=0, patched=True)
+    cache = RomeCache(run / "eval-cache", tasks, base_seed=0)
     cache.save([(i, ((np.full(1, -1.0),), 0)) for i in range(3)])
     cache.save([(1, ((np.full(1, -1.0),), 0))])                                # saved twice counts once
     evaluating, = named(experiment_status(out), "trajflow-eth-s0")
