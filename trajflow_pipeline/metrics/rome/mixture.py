@@ -8,8 +8,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import logsumexp
 
-#: ROME re-runs a cluster's PCA with added jitter this many times before the last, unguarded, attempt
-PCA_ATTEMPTS = 10
 #: query points x training points x features per block of the density evaluation
 SCORE_BLOCK = 1 << 23
 
