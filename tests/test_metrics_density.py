@@ -133,7 +133,7 @@ def test_pooled_nll_fits_the_group_predictions_together() -> None:
     group = np.array([0, 0, 0, 1])
     pooled = nll_indep(pred, gt, group_id=group, workers=1, quiet=True)
     own = nll_indep(pred, gt, group_id=group, pool_groups=False, workers=1, quiet=True)
-    expected = -fit_and_score(RomeTask(pred[:3].reshape(45, 4), (gt[:3].reshape(3, 4),)), 0)[0]
+    expected = -fit_and_score(RomeTask(pred[:3].reshape(45, 4), (gt[:3].reshape(3, 4),)))[0]
     np.testing.assert_allclose(pooled[:3], expected)
     assert pooled[3] == own[3]                       # a group of one: the same fit either way
     np.testing.assert_array_equal(own, nll_indep(pred, gt, workers=1, quiet=True))
@@ -146,7 +146,7 @@ def test_joint_nll_concatenates_agents_and_reuses_indep_for_singletons() -> None
     keys, values = nll_joint(pred, gt, np.array([8, 8, 2]), workers=1, quiet=True)
     np.testing.assert_array_equal(keys, [2, 8])
     joint_samples = np.concatenate([pred[0].reshape(30, 4), pred[1].reshape(30, 4)], axis=1)
-    expected = -fit_and_score(RomeTask(joint_samples, (np.concatenate([gt[0].ravel(), gt[1].ravel()])[None],)), 0)[0]
+    expected = -fit_and_score(RomeTask(joint_samples, (np.concatenate([gt[0].ravel(), gt[1].ravel()])[None],)))[0]
     assert values[1] == pytest.approx(expected[0], rel=0, abs=0)
     assert values[0] == nll_indep(pred, gt, workers=1, quiet=True)[2]
 

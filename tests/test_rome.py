@@ -176,3 +176,13 @@ def test_batched_and_single_fits_agree() -> None:
     together = rome.cluster(points)
     for b in (0, 5, 11):
         assert np.array_equal(rome.cluster(points[b:b + 1])[0], together[b])
+
+
+def test_silhouette_distances_do_not_depend_on_their_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Big pooled sets are computed a few rows at a time (bounded memory); every distance keeps its bits."""
+    from trajflow_pipeline.metrics.rome import selection
+
+    points = _synthetic_sets(3, 90, 24, seed=2)
+    whole = np.sqrt(((points[:, :, None, :] - points[:, None, :, :]) ** 2).sum(-1))
+    monkeypatch.setattr(selection, "SCORE_BLOCK_BYTES", 8 * 90 * 24 * 7)  # 7 rows of one set per block
+    assert np.array_equal(selection.silhouette_distances(points), whole)

@@ -31,13 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from trajflow_pipeline.errors import DataError, UsageError
-from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
 from trajflow_pipeline.metrics import rome
+from trajflow_pipeline.metrics.rome import DEFAULT_MIN_STD
 from trajflow_pipeline.metrics.rome.reference import ReferenceDensity
+from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
 from trajflow_pipeline.util.progress import console, make_progress
 
-#: ROME's default minimum standard deviation (metres here); the reference framework uses the default too.
-DEFAULT_MIN_STD = 0.1
 #: most points x points x fits clustered in one batch (bounds a batch's working memory to a few hundred MB)
 BATCH_BUDGET = 1 << 21
 #: most fits in one batch (also how often, at most, finished fits are saved to a cache)
@@ -85,7 +84,7 @@ def resolve_workers(workers: int | None) -> int:
     return int(workers)
 
 
-def fit_and_score(task: RomeTask, seed: int = 0) -> tuple[np.ndarray, ...]:
+def fit_and_score(task: RomeTask) -> tuple[np.ndarray, ...]:
     """Fit ROME on `task.fit` and return the log-density at each query array (float64); see `_fit_batch`."""
     return _fit_batch([task])[0][0]
 
@@ -140,8 +139,7 @@ def _fit_batch(tasks: Sequence[RomeTask]) -> list[tuple[tuple[np.ndarray, ...], 
     return out
 
 
-def _run_batch(batch: list[tuple[int, RomeTask]],
-               base_seed: int) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
+def _run_batch(batch: list[tuple[int, RomeTask]]) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
     """Worker entry point (top level, so 'spawn' can import it): fit a batch of (index, task) pairs of one shape."""
     return [(index, result) for (index, _), result in zip(batch, _fit_batch([task for _, task in batch]))]
 
@@ -220,14 +218,14 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
         bar = progress.add_task(description, total=n_tasks, completed=resumed)
         if n_workers == 1 or len(batches) <= 1:
             for batch in batches:
-                done = _run_batch([(i, tasks[i]) for i in batch], base_seed)
+                done = _run_batch([(i, tasks[i]) for i in batch])
                 for index, (values, retried) in done:
                     results[index], retries[index] = values, retried
                 store = _saved(store, done, quiet)
                 progress.advance(bar, len(done))
         else:
             with ProcessPoolExecutor(max_workers=min(n_workers, len(batches)), mp_context=_pool_context()) as pool:
-                futures = [pool.submit(_run_batch, [(i, tasks[i]) for i in batch], base_seed) for batch in batches]
+                futures = [pool.submit(_run_batch, [(i, tasks[i]) for i in batch]) for batch in batches]
                 unsaved = set(futures)
                 try:
                     for future in as_completed(futures):

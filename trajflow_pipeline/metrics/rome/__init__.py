@@ -13,7 +13,7 @@ from trajflow_pipeline.metrics.rome.mixture import Mixture, fit_mixture
 from trajflow_pipeline.metrics.rome.optics import euclidean_distances, optics_graph
 from trajflow_pipeline.metrics.rome.selection import best_clustering, silhouette_distances
 
-#: ROME's default minimum standard deviation
+#: ROME's default minimum standard deviation (metres here); the reference framework uses the default too
 DEFAULT_MIN_STD = 0.1
 #: below this many points ROME does not cluster: all points form one cluster
 MIN_POINTS_TO_CLUSTER = 5

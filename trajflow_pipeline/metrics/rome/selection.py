@@ -14,13 +14,17 @@ SCORE_BLOCK_BYTES = 1 << 26
 
 def silhouette_distances(points: np.ndarray) -> np.ndarray:
     """(B, n, n) distances as ROME computes them for its silhouettes (squared differences summed by numpy over the
-    last axis, then the square root), a few sets at a time."""
+    last axis, then the square root), in blocks of rows of at most SCORE_BLOCK_BYTES of differences: each
+    distance is its own reduction, so blocking changes no bit."""
     n_sets, n, n_features = points.shape
     out = np.empty((n_sets, n, n))
-    step = max(1, SCORE_BLOCK_BYTES // (8 * n * n * n_features))
-    for start in range(0, n_sets, step):
-        block = points[start:start + step]
-        out[start:start + step] = np.sqrt(((block[:, :, None, :] - block[:, None, :, :]) ** 2).sum(-1))
+    rows = max(1, SCORE_BLOCK_BYTES // (8 * n * n_features))
+    sets = max(1, rows // n)
+    for start in range(0, n_sets, sets):
+        block = points[start:start + sets]
+        for row in range(0, n, rows):
+            out[start:start + sets, row:row + rows] = np.sqrt(
+                ((block[:, row:row + rows, None, :] - block[:, None, :, :]) ** 2).sum(-1))
     return out
 
 
