@@ -210,6 +210,9 @@ def eval_command(
     ] = False,
     max_pooled: Annotated[Optional[int], typer.Option(
         help="Cap on pooled predictions per identical-input group for ROME (default: all).")] = None,
+    rome_kde: Annotated[str, typer.Option(
+        help="How ROME's densities are computed: exact, or reference (romepy's arithmetic through scikit-learn, "
+             "to the bit, rounding residue included: docs/rome.md; needs the reference extra).")] = "exact",
     device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
     force: Annotated[bool, typer.Option(help="Evaluate even on data other than the run was trained on.")] = False,
     quiet: Quiet = False,
@@ -222,7 +225,7 @@ def eval_command(
     with user_errors():
         options = EvalOptions(samples=samples, k=min(20, samples) if k is None else k, workers=workers, seed=seed,
                               steps=steps, max_pooled=max_pooled, metrics=tuple(metric) if metric else METRIC_NAMES,
-                              extended_horizon=extended_horizon)
+                              extended_horizon=extended_horizon, rome_kde=rome_kde)
         out = evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet)
     if not quiet:
         table = Table(title=f"{run}: test metrics (mean)")

@@ -29,6 +29,7 @@ from trajflow_pipeline.metrics.density import density_metrics
 from trajflow_pipeline.metrics.displacement import DEFAULT_K, ade_fde_per_draw, joint_horizon, joint_min
 from trajflow_pipeline.metrics.inputs import Groups, check_trajectories, evaluated_horizon, group_agents
 from trajflow_pipeline.metrics.parallel import RomeTally
+from trajflow_pipeline.metrics.rome import KDE_EXACT
 
 #: Every metric `compute_metrics` knows, in table order.
 METRIC_NAMES: tuple[str, ...] = ("min_ade", "min_fde", "min_ade_joint", "min_fde_joint", "nll", "nll_joint", "jsd")
@@ -77,7 +78,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
                     horizon: np.ndarray | None = None, metrics: Sequence[str] = METRIC_NAMES,
                     pool_groups: bool = True, max_pooled: int | None = None, workers: int | None = None,
                     quiet: bool = False, seed: int = 0, fallbacks: RomeTally | None = None,
-                    rome_cache: Path | None = None) -> pl.DataFrame:
+                    rome_cache: Path | None = None, rome_kde: str = KDE_EXACT) -> pl.DataFrame:
     """Evaluate `pred` (A, S, T, 2) against `gt` (A, T, 2) (metres) and return the long table described above.
 
     joint_key  (A,) int: agents predicted together (same scene and t0) — joint metrics; None: each agent alone
@@ -94,6 +95,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     seed       drives only the subsampling / chunking of large pooled sets and the per-fit RNG seeds.
     fallbacks  tally of the ROME fits that needed ROME's PCA fallback (see `metrics.parallel`).
     rome_cache directory keeping finished ROME fits, so that an interrupted evaluation resumes (`metrics.rome_cache`).
+    rome_kde   how ROME's densities are computed: "exact" (default) or "reference" (romepy's arithmetic; docs/rome.md).
     """
     wanted = check_metric_names(metrics)
     n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
@@ -122,7 +124,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     if density_wanted:
         res = density_metrics(pred, gt, metrics=density_wanted, joint_key=joint_key, group_id=group_id,
                               horizon=steps, pool_groups=pool_groups, max_pooled=max_pooled, workers=workers,
-                              quiet=quiet, seed=seed, fallbacks=fallbacks, cache=rome_cache)
+                              quiet=quiet, seed=seed, fallbacks=fallbacks, cache=rome_cache, kde=rome_kde)
         if res.nll is not None:
             frames.append(metric_rows("nll", res.nll, agents, None))
         if res.nll_joint is not None and res.nll_joint_keys is not None:

@@ -54,6 +54,7 @@ from trajflow_pipeline.metrics.divergence import jsd_from_log_densities
 from trajflow_pipeline.metrics.inputs import (Groups, check_trajectories, evaluated_horizon, flatten_futures,
                                               group_agents, group_minimum)
 from trajflow_pipeline.metrics.parallel import RomeTally, RomeTask, run_rome_tasks
+from trajflow_pipeline.metrics.rome import KDE_CHOICES, KDE_EXACT
 
 #: Smallest chunk the reference uses for a pooled predicted density (points per ROME fit).
 REFERENCE_MIN_CHUNK = 2500
@@ -85,13 +86,14 @@ class _Plan:
     joint_fit: dict[int, int] = field(default_factory=dict)          # joint group -> task
     want_indep: bool = False  # per-agent NLL needed (for "nll" or singleton joint groups)
     pooled: bool = False      # per-agent densities come from identical-input groups' pooled fits
+    kde: str = KDE_EXACT      # how every fit's density is computed (rome.KDE_CHOICES)
 
     def add(self, fit: np.ndarray, queries: tuple[np.ndarray, ...], label: str) -> int:
         """Append a task after checking that ROME can fit `fit`; return its index."""
         if fit.shape[0] < 2 or not np.ptp(fit, axis=0).max() > 0.0:
             raise DataError(f"cannot estimate a density for {label}: it needs at least 2 distinct samples, "
                             f"got {fit.shape[0]} sample(s), all identical")
-        self.tasks.append(RomeTask(fit=fit, queries=queries, label=label))
+        self.tasks.append(RomeTask(fit=fit, queries=queries, label=label, kde=self.kde))
         return len(self.tasks) - 1
 
 
@@ -171,10 +173,10 @@ def _has_spread(gt_flat: np.ndarray, groups: Groups, which: np.ndarray) -> np.nd
 
 def _build_plan(pred_flat: np.ndarray, gt_flat: np.ndarray, metrics: set[str], id_groups: Groups,
                 joint_groups: Groups, pooled: bool, max_pooled: int | None, seed: int,
-                agent_ids: np.ndarray | None = None) -> _Plan:
+                agent_ids: np.ndarray | None = None, kde: str = KDE_EXACT) -> _Plan:
     """Every ROME fit the requested metrics need, each made once (see `density_metrics`); `agent_ids` are the
     agents' indices in the caller's arrays (for error messages; default: their row here)."""
-    plan = _Plan()
+    plan = _Plan(kde=kde)
     n_agents, n_samples = pred_flat.shape[:2]
     plan.want_indep = "nll" in metrics or ("nll_joint" in metrics and bool((joint_groups.counts == 1).any()))
     plan.pooled = pooled
@@ -233,7 +235,7 @@ class _Part:
 
 def _parts(pred: np.ndarray, gt: np.ndarray, metrics: set[str], joint_key: np.ndarray | None,
            group_id: np.ndarray | None, horizon: np.ndarray, pooled: bool, max_pooled: int | None,
-           seed: int) -> list[_Part]:
+           seed: int, kde: str) -> list[_Part]:
     """Split agents by evaluated steps (indep metrics: own horizon; nll_joint: its group's shortest) and plan
     each part's fits on draws and ground truths truncated to those steps."""
     n_agents = pred.shape[0]
@@ -254,7 +256,7 @@ def _parts(pred: np.ndarray, gt: np.ndarray, metrics: set[str], joint_key: np.nd
             every = agents.size == n_agents and steps == pred.shape[2]    # the common case: views, no copies
             sub_pred, sub_gt = (pred, gt) if every else (pred[agents, :, :steps], gt[agents, :steps])
             plan = _build_plan(flatten_futures(sub_pred), flatten_futures(sub_gt), wanted, ids, joint,
-                               pooled=pooled, max_pooled=max_pooled, seed=seed, agent_ids=agents)
+                               pooled=pooled, max_pooled=max_pooled, seed=seed, agent_ids=agents, kde=kde)
             parts.append(_Part(agents, wanted, plan, ids, joint, offset))
             offset += len(plan.tasks)
     return parts
@@ -310,16 +312,19 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
                     group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
                     t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
                     quiet: bool = False, seed: int = 0, fallbacks: RomeTally | None = None,
-                    cache: Path | None = None) -> DensityResults:
+                    cache: Path | None = None, kde: str = KDE_EXACT) -> DensityResults:
     """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
 
     Fits needed by several metrics are made once (the pooled predicted density serves NLL and JSD; a
     singleton joint group reuses the indep NLL). `horizon` (A,) scores each agent over its own first steps
     (see the module docstring). `seed` only drives the subsampling / chunking of large pooled sets and the
     per-task RNG seeds; results do not depend on `workers`. `fallbacks` tallies the fits that needed ROME's
-    PCA fallback; `cache` keeps finished fits on disk so that an interrupted call resumes (see `run_rome_tasks`).
+    PCA fallback; `cache` keeps finished fits on disk so that an interrupted call resumes (see `run_rome_tasks`);
+    `kde` is how the densities are computed (`rome.KDE_CHOICES`; docs/rome.md).
     """
     _check_options(metrics, max_pooled, seed)
+    if kde not in KDE_CHOICES:
+        raise UsageError(f"unknown ROME KDE {kde!r}; valid: {', '.join(KDE_CHOICES)}")
     n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
     pred, gt = check_trajectories(pred, gt, t_eval, horizon)
     n_agents = pred.shape[0]
@@ -327,7 +332,7 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
     for key, name in ((group_id, "group_id"), (joint_key, "joint_key")):
         group_agents(key, n_agents, name)  # validated before any fit
     parts = _parts(pred, gt, set(metrics), joint_key, group_id, steps,
-                   pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed)
+                   pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed, kde=kde)
 
     results = run_rome_tasks([task for part in parts for task in part.plan.tasks], workers=workers, quiet=quiet,
                              base_seed=seed, fallbacks=fallbacks, cache=cache)

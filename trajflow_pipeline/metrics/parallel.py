@@ -1,8 +1,8 @@
 """Run independent ROME density fits in same-shape batches, across processes, with identical numbers for any worker count.
 
 A ROME fit (OPTICS clustering, silhouette choice among 199 candidate clusterings, per-cluster PCA whitening,
-Gaussian KDE) is the slow part of evaluation. Fits of one shape (n points of dimension D) are clustered together
-by :mod:`trajflow_pipeline.metrics.rome`, one batched array program; batches are spread over processes.
+Gaussian KDE) is the slow part of evaluation. Fits of one shape (n points of dimension D) are fitted together by
+:mod:`trajflow_pipeline.metrics.rome`, one batched array program; batches are spread over processes.
 
 Determinism: every batch runs with BLAS / OpenMP limited to one thread (also faster for these small problems), and
 the estimator uses no random numbers, so a fit's result depends only on its task: serial and parallel runs, and any
@@ -32,13 +32,14 @@ import numpy as np
 
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics import rome
-from trajflow_pipeline.metrics.rome import DEFAULT_MIN_STD
-from trajflow_pipeline.metrics.rome.reference import ReferenceDensity
+from trajflow_pipeline.metrics.rome import DEFAULT_MIN_STD, KDE_CHOICES, KDE_EXACT
 from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
 from trajflow_pipeline.util.progress import console, make_progress
 
 #: most points x points x fits clustered in one batch (bounds a batch's working memory to a few hundred MB)
 BATCH_BUDGET = 1 << 21
+#: most dimensions x min(points, dimensions) x fits in one batch (a layer of the densities' principal axes)
+BATCH_AXES_BUDGET = 1 << 23
 #: most fits in one batch (also how often, at most, finished fits are saved to a cache)
 BATCH_FITS = 256
 
@@ -47,13 +48,15 @@ BATCH_FITS = 256
 class RomeTask:
     """One ROME density: fitted on `fit` (n, D) and evaluated (log-density) at each array in `queries`.
 
-    `label` names the task in error messages (e.g. "agent 17", "group 3 predictions, chunk 2").
+    `label` names the task in error messages (e.g. "agent 17", "group 3 predictions, chunk 2"); `kde` is how the
+    density is computed (`rome.KDE_CHOICES`: exact, or romepy's arithmetic through scikit-learn).
     """
 
     fit: np.ndarray
     queries: tuple[np.ndarray, ...]
     label: str = "ROME task"
     min_std: float = DEFAULT_MIN_STD
+    kde: str = KDE_EXACT
 
 
 @dataclass
@@ -90,7 +93,10 @@ def fit_and_score(task: RomeTask) -> tuple[np.ndarray, ...]:
 
 
 def _check_task(task: RomeTask) -> None:
-    """DataError unless the task's points and queries are finite and their distances fit in double precision."""
+    """DataError unless the task's points and queries are finite and their distances fit in double precision;
+    UsageError for an unknown KDE."""
+    if task.kde not in KDE_CHOICES:
+        raise UsageError(f"unknown ROME KDE {task.kde!r}; valid: {', '.join(KDE_CHOICES)}")
     if not (np.isfinite(task.fit).all() and all(np.isfinite(q).all() for q in task.queries)):
         raise DataError(f"non-finite values in the points of {task.label}")
     with np.errstate(over="ignore"):
@@ -109,34 +115,73 @@ def _fit_batch(tasks: Sequence[RomeTask]) -> list[tuple[tuple[np.ndarray, ...], 
     """Fit ROME on each task's points (all of one shape) and return, per task, the log-density at each of its query
     arrays and how many times a cluster's PCA was re-run with jitter (ROME's fallback; 0 for most fits).
 
-    The clusterings of all fits are one batched computation (`trajflow_pipeline.metrics.rome`); each fit's
-    density is then made on its clusters as the reference makes it. BLAS and OpenMP run on one thread (faster for
-    these small problems, and reproducible), so a result is a function of its task alone. ROME's log-density is a
-    log-sum-exp over clusters of KDE log-densities computed in log space: far from every sample it is very negative
-    but finite, never -inf, so no floor is applied. A non-finite result can only come from a degenerate fit and is
-    reported as a DataError.
+    The clusterings and the exact densities of all fits are one batched computation
+    (`trajflow_pipeline.metrics.rome`); tasks asking for the reference KDE get theirs per fit through scikit-learn.
+    BLAS and OpenMP run on one thread (faster for these small problems, and reproducible), so a result is a
+    function of its task alone. ROME's log-density is a log-sum-exp over clusters of KDE log-densities computed in
+    log space: far from every sample it is very negative but finite, never -inf, so no floor is applied. A
+    non-finite result can only come from a degenerate fit and is reported as a DataError.
     """
-    import sklearn
     from threadpoolctl import threadpool_limits
 
     for task in tasks:
         _check_task(task)
     points = np.stack([np.ascontiguousarray(task.fit, dtype=np.float64) for task in tasks])
-    out: list[tuple[tuple[np.ndarray, ...], int]] = []
-    # inputs are checked finite float64 above, so scikit-learn's repeated validation is skipped (public settings)
-    with threadpool_limits(limits=1), sklearn.config_context(assume_finite=True, skip_parameter_validation=True):
+    with threadpool_limits(limits=1):
         labels = rome.cluster(points)
-        for task, fit_points, fit_labels in zip(tasks, points, labels):
-            density = ReferenceDensity(fit_points, fit_labels, task.min_std)
-            values = tuple(np.asarray(density.log_density(np.ascontiguousarray(q, dtype=np.float64)),
-                                      dtype=np.float64) for q in task.queries)
-            for value in values:
-                if not np.all(np.isfinite(value)):
-                    raise DataError(f"ROME returned a non-finite log-density for {task.label} "
-                                    f"({task.fit.shape[0]} points of dimension {task.fit.shape[1]}): "
-                                    "the sample set is degenerate")
-            out.append((values, density.pca_retries))
+        exact = np.array([task.kde == KDE_EXACT for task in tasks])
+        results = _exact_densities(tasks, points, labels, exact) if exact.any() else {}
+        results.update({i: _reference_density(tasks[i], points[i], labels[i]) for i in np.flatnonzero(~exact)})
+    out = [results[i] for i in range(len(tasks))]
+    for task, (values, _) in zip(tasks, out):
+        for value in values:
+            if not np.all(np.isfinite(value)):
+                raise DataError(f"ROME returned a non-finite log-density for {task.label} "
+                                f"({task.fit.shape[0]} points of dimension {task.fit.shape[1]}): "
+                                "the sample set is degenerate")
     return out
+
+
+def _exact_densities(tasks: Sequence[RomeTask], points: np.ndarray, labels: np.ndarray,
+                     wanted: np.ndarray) -> dict[int, tuple[tuple[np.ndarray, ...], int]]:
+    """The exact densities of the `wanted` tasks (index -> result as `_fit_batch`), fitted as one batch and
+    evaluated in groups of tasks with equally many query points."""
+    chosen = np.flatnonzero(wanted)
+    mixture = rome.fit_mixture(points[chosen], labels[chosen], np.array([tasks[i].min_std for i in chosen]))
+    lengths = {i: [len(q) for q in tasks[i].queries] for i in chosen}
+    by_count: dict[int, list[int]] = {}
+    for position, i in enumerate(chosen):
+        by_count.setdefault(sum(lengths[i]), []).append(position)
+    results: dict[int, tuple[tuple[np.ndarray, ...], int]] = {}
+    for count, positions in by_count.items():
+        members = [int(chosen[p]) for p in positions]
+        if count:
+            queries = np.stack([np.concatenate([np.asarray(q, dtype=np.float64).reshape(-1, points.shape[2])
+                                                for q in tasks[i].queries]) for i in members])
+            values = mixture.log_density(queries, np.array(positions))
+        else:
+            values = np.zeros((len(members), 0))
+        for row, (position, i) in enumerate(zip(positions, members)):
+            parts = np.split(values[row], np.cumsum(lengths[i])[:-1]) if lengths[i] else []
+            results[i] = (tuple(parts), int(mixture.pca_retries[position]))
+    return results
+
+
+def _reference_density(task: RomeTask, points: np.ndarray, labels: np.ndarray) -> tuple[tuple[np.ndarray, ...], int]:
+    """One task's density through scikit-learn as romepy computes it (`rome.KDE_REFERENCE`)."""
+    try:
+        import sklearn
+    except ImportError as error:
+        raise UsageError("the reference KDE needs scikit-learn (the reference extra: pip install -e '.[reference]'); "
+                         "the exact KDE, the default, does not") from error
+    from trajflow_pipeline.metrics.rome.reference import ReferenceDensity
+
+    # inputs are checked finite float64, so scikit-learn's repeated validation is skipped (public settings)
+    with sklearn.config_context(assume_finite=True, skip_parameter_validation=True):
+        density = ReferenceDensity(points, labels, task.min_std)
+        values = tuple(np.asarray(density.log_density(np.ascontiguousarray(q, dtype=np.float64)), dtype=np.float64)
+                       for q in task.queries)
+    return values, density.pca_retries
 
 
 def _run_batch(batch: list[tuple[int, RomeTask]]) -> list[tuple[int, tuple[tuple[np.ndarray, ...], int]]]:
@@ -145,7 +190,7 @@ def _run_batch(batch: list[tuple[int, RomeTask]]) -> list[tuple[int, tuple[tuple
 
 
 #: Modules the forkserver imports once, so that forked workers start with the estimator ready.
-_PRELOAD = ["trajflow_pipeline.metrics.parallel", "sklearn.neighbors", "sklearn.decomposition", "threadpoolctl"]
+_PRELOAD = ["trajflow_pipeline.metrics.parallel", "threadpoolctl"]
 
 
 def _pool_context() -> multiprocessing.context.BaseContext:
@@ -173,15 +218,17 @@ def _saved(store: RomeCache | None, finished: list[Finished], quiet: bool) -> Ro
 
 
 def _batches(tasks: Sequence[RomeTask], todo: list[int], workers: int) -> list[list[int]]:
-    """Task indices in batches of one fit shape, in task order within each: at most BATCH_FITS fits and
-    BATCH_BUDGET points squared per batch, and at least ~4 batches per worker when there are enough fits."""
+    """Task indices in batches of one fit shape, in task order within each: at most BATCH_FITS fits, BATCH_BUDGET
+    points squared and BATCH_AXES_BUDGET principal-axis elements per batch, and at least ~4 batches per worker when there are enough fits."""
     by_shape: dict[tuple[int, int], list[int]] = {}
     for index in todo:
         by_shape.setdefault(tuple(np.shape(tasks[index].fit)), []).append(index)
     spread = max(1, -(-len(todo) // (4 * workers))) if workers > 1 else BATCH_FITS
     batches = []
-    for (n_points, _), indices in by_shape.items():
-        size = max(1, min(BATCH_FITS, spread, BATCH_BUDGET // max(1, n_points * n_points)))
+    for (n_points, dimension), indices in by_shape.items():
+        axes = dimension * min(n_points, dimension)
+        size = max(1, min(BATCH_FITS, spread, BATCH_BUDGET // max(1, n_points * n_points),
+                          BATCH_AXES_BUDGET // max(1, axes)))
         batches += [indices[i:i + size] for i in range(0, len(indices), size)]
     return sorted(batches)
 

@@ -3,7 +3,7 @@
 The ROME fits are most of an evaluation's time (an hour and more for a large test fold on one core), and a fit's
 result depends only on its task, its seed and the fitting code (see :mod:`trajflow_pipeline.metrics.parallel`).
 So finished fits are saved in parts, each written atomically and synced, under ``ROOT/<digest>/``. The digest
-covers every task's points, queries and minimum standard deviation, the seed, the number and order of the tasks,
+covers every task's points, queries, minimum standard deviation and KDE, the seed, the number and order of the tasks,
 and what fits them: the estimator's version (:data:`ESTIMATOR`), the versions of scikit-learn, numpy and scipy,
 this module's format version and the processor model (BLAS kernels differ between CPUs in the last bits). A rerun
 over the very same tasks on the same setup loads the saved fits and fits only the rest; anything else gets a
@@ -34,7 +34,7 @@ Finished = tuple[int, tuple[tuple[np.ndarray, ...], int]]
 #: bump when the way a task is fitted or saved changes, so that older saved fits are not reused
 FORMAT_VERSION = 2
 #: the estimator that made the saved fits (trajflow_pipeline.metrics.rome); bump when its numbers change
-ESTIMATOR = "trajflow-rome-1"
+ESTIMATOR = "trajflow-rome-2"
 #: the file in each digest directory that says how many tasks the list has (for progress displays)
 MANIFEST = "tasks.json"
 
@@ -130,7 +130,7 @@ def _digest(tasks: Sequence[Any], base_seed: int) -> str:
                                         "estimator": ESTIMATOR, "setup": _setup()}, sort_keys=True).encode())
     for task in tasks:
         arrays = [task.fit, *task.queries]
-        digest.update(struct.pack("<dq", float(task.min_std), len(arrays)))
+        digest.update(struct.pack("<dq", float(task.min_std), len(arrays)) + str(task.kde).encode() + b"\0")
         for array in arrays:
             values = np.ascontiguousarray(array, dtype=np.float64)
             digest.update(struct.pack("<q", values.ndim) + struct.pack(f"<{values.ndim}q", *values.shape))

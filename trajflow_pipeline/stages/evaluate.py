@@ -9,6 +9,7 @@ Writes, atomically, ``RUN/eval/``:
                               sample_id, aggregate (True on the one mean row per metric, as the paper averages;
                               the other rows are per agent, or per joint group / identical-input group);
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
+                              ``rome_kde`` (how ROME's densities were computed; docs/rome.md),
                               seconds, date, trajflow version and code revisions (``code_revision`` of the
                               evaluation, ``training_code_revisions`` from run.json), the machines (``machine``
                               that evaluated, ``training_machines``), data fingerprint, the run's resolved config,
@@ -66,6 +67,7 @@ from ..errors import TrajflowError, UsageError
 from ..metrics import METRIC_NAMES, RomeTally, check_metric_names, compute_metrics, jsd_groups
 from ..metrics.compute import SCHEMA, metric_rows
 from ..metrics.inputs import group_agents, group_minimum
+from ..metrics.rome import KDE_CHOICES, KDE_EXACT
 from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import open_dataset
 from ..util.atomic import atomic_directory
@@ -101,6 +103,9 @@ class EvalOptions:
     #: cap on the pooled predictions of an identical-input group fed to ROME (None: all, as the reference
     #: framework); the synthetic set pools 3000 x draws points, which costs minutes per fit without a cap
     max_pooled: int | None = None
+    #: how ROME's densities are computed: "exact" (the default) or "reference", romepy's arithmetic through
+    #: scikit-learn (its numbers to the bit, rounding residue included; docs/rome.md)
+    rome_kde: str = KDE_EXACT
 
     def validate(self) -> None:
         if self.samples < 1:
@@ -115,6 +120,8 @@ class EvalOptions:
             raise UsageError(f"extended_horizon must be true or false, got {self.extended_horizon!r}")
         if self.max_pooled is not None and self.max_pooled < 2:
             raise UsageError(f"--max-pooled must be at least 2, got {self.max_pooled}")
+        if self.rome_kde not in KDE_CHOICES:
+            raise UsageError(f"--rome-kde must be one of {', '.join(KDE_CHOICES)}, got {self.rome_kde!r}")
         check_metric_names(self.metrics)
 
 
@@ -256,7 +263,7 @@ def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, op
     steps = min(gt.shape[1], trajectories.shape[2]) if horizon is None else horizon.evaluated
     common = dict(joint_key=problems.joint_id, group_id=problems.group_id, k=options.k, metrics=options.metrics,
                   workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled,
-                  fallbacks=fallbacks, rome_cache=rome_cache)
+                  fallbacks=fallbacks, rome_cache=rome_cache, rome_kde=options.rome_kde)
     table = compute_metrics(trajectories[:, :, :steps], gt[:, :steps], **common)
     if horizon is not None and horizon.extended:
         extended = _extended_metrics(problems, trajectories, table, dict(common, fallbacks=fallbacks_ext))
@@ -423,7 +430,7 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
         "run": run.name, "run_dir": str(run.path.resolve()), "model": run.model, "dataset": problems.dataset,
         "fold": run.fold, "seed": run.seed, "samples": options.samples, "k": options.k,
         "metrics": list(check_metric_names(options.metrics)), "workers": options.workers, "eval_seed": options.seed,
-        "max_pooled": options.max_pooled,
+        "max_pooled": options.max_pooled, "rome_kde": options.rome_kde,
         "problems": len(problems), "steps": int(trajectories.shape[2]), "device": str(torch_device),
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "code_revision": revision,

@@ -141,7 +141,7 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
     _unknown(_table(raw, "train", path), {"set"}, "[train]", path)
     eval_section = _table(raw, "eval", path)
     _unknown(eval_section, {"samples", "k", "workers", "batch_size", "metrics", "seed", "max_pooled", "steps",
-                            "extended_horizon"}, "[eval]", path)
+                            "extended_horizon", "rome_kde"}, "[eval]", path)
     if "path" not in data:
         raise UsageError(f"{path}: [data] needs a path")
     ingest = data.get("ingest")

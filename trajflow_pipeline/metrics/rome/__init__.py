@@ -1,7 +1,8 @@
 """ROME, the TrajFlow paper's density estimator (Mészáros et al.), fitted to many same-shape point sets at once.
 
-Gives the numbers of the reference code (romepy 0.1.4 on scikit-learn) without it: docs/rome.md describes the
-algorithm and where each step matches the reference's arithmetic.
+The reference code's clustering (romepy 0.1.4 on scikit-learn) bit for bit, and its density computed exactly
+(or, as KDE_REFERENCE, through scikit-learn as romepy computes it): docs/rome.md describes the algorithm, where
+each step matches the reference's arithmetic, and where the reference's own arithmetic is inexact.
 """
 
 from __future__ import annotations
@@ -15,6 +16,12 @@ from trajflow_pipeline.metrics.rome.selection import best_clustering, silhouette
 
 #: ROME's default minimum standard deviation (metres here); the reference framework uses the default too
 DEFAULT_MIN_STD = 0.1
+#: the density computed exactly, batched (the default)
+KDE_EXACT = "exact"
+#: each cluster's PCA and KDE fitted through scikit-learn as romepy fits them: romepy's numbers to the bit,
+#: rounding residue of its KD-tree and its SVD included (docs/rome.md); needs scikit-learn
+KDE_REFERENCE = "reference"
+KDE_CHOICES = (KDE_EXACT, KDE_REFERENCE)
 #: below this many points ROME does not cluster: all points form one cluster
 MIN_POINTS_TO_CLUSTER = 5
 
@@ -28,8 +35,9 @@ def cluster(points: np.ndarray) -> np.ndarray:
     return best_clustering(candidate_clusterings(graph), silhouette_distances(points))
 
 
-def fit(points: np.ndarray, min_std: float = DEFAULT_MIN_STD) -> Mixture:
-    """ROME fitted to each of B point sets (B, n, D) of finite float64 coordinates; see Mixture.log_density."""
+def fit(points: np.ndarray, min_std: float | np.ndarray = DEFAULT_MIN_STD) -> Mixture:
+    """ROME fitted to each of B point sets (B, n, D) of finite float64 coordinates (one `min_std` for all, or one
+    per set); see Mixture.log_density."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 3:
         raise ValueError(f"points must be (sets, points, dimensions); got shape {points.shape}")

@@ -1,141 +1,223 @@
-"""ROME's density given a clustering: per cluster a whitening (PCA with a minimum std) and a Gaussian KDE, mixed by
-cluster size; noise points share one KDE on axis-scaled coordinates."""
+"""ROME's density given a clustering, computed exactly for a batch of point sets: per cluster a whitening (PCA with a
+minimum std) and a Gaussian KDE, mixed by cluster size; noise points share one KDE on axis-scaled coordinates."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import logsumexp
 
-#: query points x training points x features per block of the density evaluation
-SCORE_BLOCK = 1 << 23
+#: most array elements one block of the density evaluation holds (query images x points x axes)
+SCORE_BLOCK = 1 << 22
+#: ROME re-runs a cluster's PCA with added jitter before this attempt, which runs unguarded
+PCA_ATTEMPTS = 10
 
 
 @dataclass(frozen=True)
 class Mixture:
-    """Fitted densities of B point sets (n points of dimension D each), with up to C clusters per set.
+    """Fitted densities of B point sets of n points in D dimensions each (docs/rome.md, "The density").
 
-    slot (B, n): each point's cluster slot (slots in ascending label order; noise, when present, is slot 0);
-    means (B, C, D) and transforms (B, C, D, D): a point x of slot c maps to (x - means[c]) @ transforms[c];
-    whitened (B, n, D): the training points mapped by their own slot; offsets (B, C): each slot's log weight,
-    log-determinant, KDE normalisation and 1 / n_c together; inverse_bandwidth (B, C); pca_retries (B,).
+    Clusters are packed over all sets, K in all, ordered by set: cluster k of set `cluster_set[k]` maps a point x
+    to (x - means[k]) @ axes[k] * inverse_std[k] on its r principal axes (r = min(largest cluster, D)); every
+    direction outside those axes has zero variance, whose floored std is min_std, so it adds
+    |residual|^2 * null_inverse_std[k]^2 to a squared distance. Per point (B, n): `cluster_of` its cluster (-1:
+    noise), `whitened` (B, n, r) its image under its own cluster, `offset` its kernel's log weight, Jacobian and
+    normalisation together, `inverse_bandwidth`. Noise points are scaled per axis by `noise_scale` (B, D).
     """
 
-    slot: np.ndarray
+    cluster_of: np.ndarray
+    cluster_set: np.ndarray
     means: np.ndarray
-    transforms: np.ndarray
+    axes: np.ndarray
+    inverse_std: np.ndarray
+    null_inverse_std: np.ndarray
     whitened: np.ndarray
-    offsets: np.ndarray
+    noise_scale: np.ndarray
+    noise_whitened: np.ndarray
+    offset: np.ndarray
     inverse_bandwidth: np.ndarray
     pca_retries: np.ndarray
 
-    def log_density(self, queries: np.ndarray) -> np.ndarray:
-        """Natural-log density (B, m) of each set's density at its own queries (B, m, D)."""
-        n_sets, m, n_features = queries.shape
-        n = self.slot.shape[1]
-        out = np.empty((n_sets, m))
-        sets_per_block = max(1, SCORE_BLOCK // max(1, m * n * n_features))
-        step_m = m if sets_per_block > 1 else max(1, SCORE_BLOCK // (n * n_features))
-        for s in range(0, n_sets, sets_per_block):
-            block = slice(s, s + sets_per_block)
-            means, transforms, slot = self.means[block], self.transforms[block], self.slot[block]
-            terms_const = np.take_along_axis(self.offsets[block], slot, axis=1)              # (b, n)
-            scale = np.take_along_axis(self.inverse_bandwidth[block], slot, axis=1)          # (b, n)
-            for q in range(0, m, step_m):
-                centred = queries[block, None, q:q + step_m, :] - means[:, :, None, :]      # (b, C, mq, D)
-                mapped = np.matmul(centred, transforms)                                      # (b, C, mq, D)
-                own = np.take_along_axis(mapped, slot[:, :, None, None], axis=1)             # (b, n, mq, D)
-                difference = own - self.whitened[block][:, :, None, :]
-                squared = np.einsum("bnqd,bnqd->bqn", difference, difference)
-                terms = -0.5 * squared * (scale ** 2)[:, None, :] + terms_const[:, None, :]
-                out[block, q:q + step_m] = logsumexp(terms, axis=2)
+    def log_density(self, queries: np.ndarray, sets: np.ndarray | None = None) -> np.ndarray:
+        """Natural-log density (len(sets), m) of each of `sets` (ascending set indices; default all) at its own
+        query points (len(sets), m, D)."""
+        sets = np.arange(self.cluster_of.shape[0]) if sets is None else np.asarray(sets, dtype=np.int64)
+        out = np.empty(queries.shape[:2])
+        for rows, columns in _score_blocks(self, queries.shape[1], sets.size):
+            out[rows, columns] = self._block(queries[rows, columns], sets[rows])
         return out
 
+    def _block(self, queries: np.ndarray, sets: np.ndarray) -> np.ndarray:
+        """Log-densities (b, m) of the b `sets` at their queries (b, m, D), in one pass."""
+        clusters = np.flatnonzero(np.isin(self.cluster_set, sets))
+        owner = np.searchsorted(sets, self.cluster_set[clusters])                   # each cluster's row in sets
+        centred = queries[owner] - self.means[clusters][:, None, :]                 # (k, m, D)
+        axes = self.axes[clusters]
+        projected = np.matmul(centred, axes)                                       # (k, m, r)
+        residual = centred - np.matmul(projected, axes.transpose(0, 2, 1))
+        null_part = np.einsum("kmd,kmd->km", residual, residual) * self.null_inverse_std[clusters, None] ** 2
+        images = projected * self.inverse_std[clusters][:, None, :]
+        cluster_of = self.cluster_of[sets]                                          # (b, n)
+        local = np.searchsorted(clusters, np.maximum(cluster_of, 0))
+        local = np.minimum(local, max(clusters.size - 1, 0))
+        if clusters.size:
+            difference = images[local] - self.whitened[sets][:, :, None, :]        # (b, n, m, r)
+            squared = np.einsum("bnmr,bnmr->bnm", difference, difference) + null_part[local]
+        else:
+            squared = np.zeros(cluster_of.shape + queries.shape[1:2])
+        noise = cluster_of < 0
+        if noise.any():
+            scaled = queries * self.noise_scale[sets][:, None, :]
+            members = np.argsort(~noise, axis=1, kind="stable")[:, :int(noise.sum(axis=1).max())]
+            difference = scaled[:, None, :, :] - np.take_along_axis(
+                self.noise_whitened[sets], members[:, :, None], axis=1)[:, :, None, :]
+            noise_squared = np.einsum("bzmd,bzmd->bzm", difference, difference)
+            np.put_along_axis(squared, members[:, :, None],
+                              np.where(np.take_along_axis(noise, members, axis=1)[:, :, None], noise_squared,
+                                       np.take_along_axis(squared, members[:, :, None], axis=1)), axis=1)
+        terms = (-0.5 * squared * (self.inverse_bandwidth[sets] ** 2)[:, :, None]
+                 + self.offset[sets][:, :, None])
+        return logsumexp(terms, axis=1)
 
-def _principal_axes(centred: np.ndarray, sizes: np.ndarray, n_features: int) -> tuple[np.ndarray, np.ndarray]:
-    """(variances (K, D) descending, axes (K, D, D) as columns) of clusters given as zero-padded centred rows
-    (K, r, D) with `sizes` real rows, as scikit-learn's PCA finds them for ROME: clusters with fewer points than
-    dimensions are repeated (tiled) until they have at least D rows; the covariance route for at least 10 D
-    rows, the SVD of the data otherwise."""
+
+def _score_blocks(mixture: Mixture, n_queries: int, n_sets: int) -> Iterator[tuple[slice, slice]]:
+    """(sets, queries) slices whose evaluation holds at most about SCORE_BLOCK elements at once."""
+    n, width = mixture.whitened.shape[1], max(mixture.whitened.shape[2], mixture.noise_scale.shape[1])
+    per_query = n * width
+    queries_per_block = max(1, min(n_queries, SCORE_BLOCK // per_query))
+    sets_per_block = max(1, SCORE_BLOCK // (per_query * max(1, n_queries))) if queries_per_block == n_queries else 1
+    for s in range(0, n_sets, sets_per_block):
+        for q in range(0, n_queries, queries_per_block):
+            yield slice(s, s + sets_per_block), slice(q, q + queries_per_block)
+
+
+def _principal_axes(centred: np.ndarray, sizes: np.ndarray, n_features: int) -> tuple[np.ndarray, np.ndarray,
+                                                                                        np.ndarray]:
+    """(variances (K, r) descending, axes (K, D, r) as columns, PCA retries (K,)) of K clusters given as zero-padded
+    centred rows (K, w, D) with `sizes` real rows, r = min(w, D), as scikit-learn's PCA finds them for ROME.
+
+    ROME repeats (tiles) a cluster with fewer points than dimensions until it has at least D rows; the tiles change
+    no axis and scale the variances by repeats * (size - 1) / (rows - 1), so the untiled rows are decomposed. The
+    axes of zero variance that tiling and the full decomposition would add all get the floored std, so they are left
+    implicit (docs/rome.md). Covariance route for at least 10 D (tiled) rows, the SVD of the data otherwise, as
+    scikit-learn chooses. A failed decomposition is re-run per cluster with ROME's jitter on the tiled rows.
+    """
     repeats = np.where(sizes < n_features, -(-n_features // np.maximum(sizes, 1)), 1)
     rows = sizes * repeats
-    variances = np.empty((sizes.size, n_features))
-    axes = np.empty((sizes.size, n_features, n_features))
+    try:
+        variances, axes = _decompose(centred, repeats, rows, n_features)
+        return variances, axes, np.zeros(sizes.size, dtype=np.int64)
+    except np.linalg.LinAlgError:
+        pass
+    results = [_jittered_axes(centred[k, :sizes[k]], n_features) for k in range(sizes.size)]
+    width = max(axes.shape[1] for _, axes, _ in results)
+    variances = np.zeros((sizes.size, width))
+    axes = np.zeros((sizes.size, n_features, width))  # zero columns: zero variance, like the implicit axes
+    for k, (values, vectors, _) in enumerate(results):
+        variances[k, :values.size], axes[k, :, :values.size] = values, vectors
+    return variances, axes, np.array([retries for _, _, retries in results], dtype=np.int64)
+
+
+def _decompose(centred: np.ndarray, repeats: np.ndarray, rows: np.ndarray,
+               n_features: int) -> tuple[np.ndarray, np.ndarray]:
+    """Variances and axes (see _principal_axes) of all clusters at once; LinAlgError when a decomposition fails."""
+    n_clusters, width, _ = centred.shape
+    rank = min(width, n_features)
+    variances = np.zeros((n_clusters, rank))
+    axes = np.zeros((n_clusters, n_features, rank))
     by_covariance = rows >= 10 * n_features
-    if by_covariance.any():
+    if by_covariance.any():  # then width >= 10 D, so rank == D
         data = centred[by_covariance]
         gram = np.matmul(data.transpose(0, 2, 1), data) * repeats[by_covariance, None, None]
         gram /= (rows[by_covariance] - 1)[:, None, None]
         values, vectors = np.linalg.eigh(gram)
-        values = values[:, ::-1]
-        variances[by_covariance] = np.where(values < 0.0, 0.0, values)
+        variances[by_covariance] = np.maximum(values[:, ::-1], 0.0)
         axes[by_covariance] = vectors[:, :, ::-1]
     by_svd = ~by_covariance
     if by_svd.any():
-        data = centred[by_svd]
-        if data.shape[1] < n_features:  # zero rows complete the basis; they change no singular value
-            data = np.concatenate([data, np.zeros((data.shape[0], n_features - data.shape[1], n_features))], axis=1)
-        _, singular, vt = np.linalg.svd(data, full_matrices=False)
+        _, singular, vt = np.linalg.svd(centred[by_svd], full_matrices=False)
         variances[by_svd] = singular ** 2 * repeats[by_svd, None] / (rows[by_svd] - 1)[:, None]
         axes[by_svd] = vt.transpose(0, 2, 1)
     return variances, axes
 
 
-def fit_mixture(points: np.ndarray, labels: np.ndarray, min_std: float) -> Mixture:
-    """ROME's density of each point set (B, n, D) given its chosen clustering (B, n), -1 for noise."""
-    n_sets, n, n_features = points.shape
-    noise = labels == -1
-    has_noise = noise.any(axis=1)
-    slot = labels + has_noise[:, None]                                  # noise -> 0, clusters after it
-    n_slots = int(slot.max()) + 1
-    one_hot = np.zeros((n_sets, n, n_slots))
-    np.put_along_axis(one_hot, slot[:, :, None], 1.0, axis=2)
-    sizes = one_hot.sum(axis=1)                                          # (B, C)
-    present = sizes > 0
-    cluster = present & ~(has_noise[:, None] & (np.arange(n_slots) == 0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        means = np.matmul(one_hot.transpose(0, 2, 1), points) / sizes[:, :, None]
-    means[~cluster] = 0.0
-    centred = points - np.take_along_axis(means, slot[:, :, None], axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        stds = np.sqrt(np.matmul(one_hot.transpose(0, 2, 1), centred ** 2) / sizes[:, :, None])
+def _jittered_axes(members: np.ndarray, n_features: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(variances, axes, retries) of one cluster's centred points by ROME's fallback: its tiled rows decomposed,
+    re-run with jitter 10^(a/2 - 6) on the first D rows' diagonal before attempt a + 1 while the SVD fails."""
+    n_points = members.shape[0]
+    data = np.tile(members, (-(-n_features // n_points), 1)) if n_points < n_features else members.copy()
+    for attempt in range(PCA_ATTEMPTS + 1):
+        try:
+            _, singular, vt = np.linalg.svd(data - data.mean(axis=0), full_matrices=False)
+            return singular ** 2 / (data.shape[0] - 1), vt.T, attempt
+        except np.linalg.LinAlgError:
+            if attempt == PCA_ATTEMPTS:
+                raise
+            data[:n_features] += np.eye(n_features) * 10 ** (0.5 * attempt - 6)
+    raise AssertionError("unreachable")
 
-    transforms = np.zeros((n_sets, n_slots, n_features, n_features))
-    log_det = np.zeros((n_sets, n_slots))
-    sets, slots = np.nonzero(cluster)
-    if sets.size:
-        # each cluster's centred points, gathered to the front of a zero-padded block
-        members = (slot[sets] == slots[:, None])                         # (K, n)
-        order = np.argsort(~members, axis=1, kind="stable")
-        counts = sizes[sets, slots].astype(np.int64)
-        width = int(counts.max())
-        block = np.take_along_axis(centred[sets], order[:, :width, None], axis=1)
-        block[np.arange(width)[None, :] >= counts[:, None]] = 0.0
-        variances, axes = _principal_axes(block, counts, n_features)
-        pca_std = np.sqrt(variances)
-        top = pca_std.max(axis=1, keepdims=True)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            pca_std = pca_std * (top - min_std) / top + min_std
-        _, log_abs_det = np.linalg.slogdet(axes)
-        transforms[sets, slots] = axes / pca_std[:, None, :]
-        log_det[sets, slots] = log_abs_det - np.log(pca_std).sum(axis=1)
-    if has_noise.any():
-        n_clusters = cluster.sum(axis=1)
-        with np.errstate(invalid="ignore"):
-            mean_std = np.where(cluster[:, :, None], stds, 0.0).sum(axis=1) / np.maximum(n_clusters, 1)[:, None]
-        noise_std = np.where((n_clusters > 0)[:, None], np.maximum(mean_std, min_std), 1.0)
-        rows = np.flatnonzero(has_noise)
-        transforms[rows, 0] = np.eye(n_features) / noise_std[rows, None, :]
-        log_det[rows, 0] = np.where(n_clusters[rows] > 0, -np.log(noise_std[rows]).sum(axis=1), 0.0)
-    bandwidth = np.where(cluster, (np.maximum(sizes, 1) * (n_features + 2) / 4) ** (-1 / (n_features + 4)),
-                         ((n_features + 2) / 4) ** (-1 / (n_features + 4)))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        offsets = (np.log(sizes / n) + log_det - np.log(sizes)
-                   - (0.5 * n_features * np.log(2 * np.pi) + n_features * np.log(bandwidth)))
-    offsets[~present] = -np.inf
-    own_transform = transforms[np.arange(n_sets)[:, None], slot]                   # (B, n, D, D)
-    own_mean = np.take_along_axis(means, slot[:, :, None], axis=1)
-    whitened = np.matmul((points - own_mean)[:, :, None, :], own_transform)[:, :, 0, :]
-    return Mixture(slot, means, transforms, whitened, offsets, 1.0 / bandwidth,
-                   np.zeros(n_sets, dtype=np.int64))
+
+def fit_mixture(points: np.ndarray, labels: np.ndarray, min_std: float | np.ndarray) -> Mixture:
+    """ROME's density of each point set (B, n, D) given its chosen clustering (B, n), -1 for noise; `min_std` is
+    one floor for all sets or one per set (B,)."""
+    n_sets, n, n_features = points.shape
+    min_std = np.broadcast_to(np.asarray(min_std, dtype=np.float64), (n_sets,))
+    noise = labels == -1
+    n_labels = max(int(labels.max()) + 1, 1)
+    counts = np.zeros((n_sets, n_labels), dtype=np.int64)
+    set_of_point = np.broadcast_to(np.arange(n_sets)[:, None], labels.shape)
+    np.add.at(counts, (set_of_point[~noise], labels[~noise]), 1)
+    cluster_set, cluster_label = np.nonzero(counts)                       # K clusters, ordered by set
+    sizes = counts[cluster_set, cluster_label]
+    index = np.full((n_sets, n_labels), -1)
+    index[cluster_set, cluster_label] = np.arange(cluster_set.size)
+    cluster_of = np.where(noise, -1, index[set_of_point, np.maximum(labels, 0)])
+
+    # each cluster's points, gathered to the front of a zero-padded block (K, w, D)
+    is_member = cluster_of[cluster_set] == np.arange(cluster_set.size)[:, None]      # (K, n)
+    order = np.argsort(~is_member, axis=1, kind="stable")
+    width = int(sizes.max()) if sizes.size else 1
+    order = order[:, :width]
+    real = np.arange(width)[None, :] < sizes[:, None]
+    block = points[cluster_set[:, None], order]
+    means = np.where(real[:, :, None], block, 0.0).sum(axis=1) / sizes[:, None] if sizes.size else \
+        np.zeros((0, n_features))
+    centred = np.where(real[:, :, None], block - means[:, None, :], 0.0)
+    stds = np.sqrt((centred ** 2).sum(axis=1) / sizes[:, None]) if sizes.size else np.zeros((0, n_features))
+
+    variances, axes, retries = _principal_axes(centred, sizes, n_features) if sizes.size else (
+        np.zeros((0, 1)), np.zeros((0, n_features, 1)), np.zeros(0, dtype=np.int64))
+    floor = min_std[cluster_set][:, None]
+    pca_std = np.sqrt(variances)
+    top = pca_std.max(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pca_std = pca_std * (top - floor) / top + floor
+    implicit = n_features - pca_std.shape[1]                              # axes of zero variance left implicit
+    cluster_log_det = -np.log(pca_std).sum(axis=1) - implicit * np.log(min_std[cluster_set])
+    whitened = np.zeros((n_sets, n, pca_std.shape[1]))
+    whitened[cluster_set[:, None].repeat(width, 1)[real], order[real]] = (
+        np.matmul(centred, axes) / pca_std[:, None, :])[real]
+
+    n_clusters = np.bincount(cluster_set, minlength=n_sets)
+    mean_std = np.zeros((n_sets, n_features))
+    np.add.at(mean_std, cluster_set, stds)
+    mean_std /= np.maximum(n_clusters, 1)[:, None]
+    noise_std = np.where((n_clusters > 0)[:, None], np.maximum(mean_std, min_std[:, None]), 1.0)
+    noise_log_det = np.where(n_clusters > 0, -np.log(noise_std).sum(axis=1), 0.0)
+
+    n_noise = noise.sum(axis=1)
+    own_size = np.where(noise, n_noise[:, None], sizes[np.maximum(cluster_of, 0)] if sizes.size else 1)
+    log_det = np.where(noise, noise_log_det[:, None],
+                       cluster_log_det[np.maximum(cluster_of, 0)] if sizes.size else 0.0)
+    bandwidth = np.where(noise, ((n_features + 2) / 4) ** (-1 / (n_features + 4)),
+                         (own_size * (n_features + 2) / 4) ** (-1 / (n_features + 4)))
+    offset = (np.log(own_size / n) + log_det - np.log(own_size)
+              - (0.5 * n_features * np.log(2 * np.pi) + n_features * np.log(bandwidth)))
+    pca_retries = np.zeros(n_sets, dtype=np.int64)
+    np.add.at(pca_retries, cluster_set, retries)
+    return Mixture(cluster_of=cluster_of, cluster_set=cluster_set, means=means, axes=axes,
+                   inverse_std=1.0 / pca_std, null_inverse_std=1.0 / min_std[cluster_set], whitened=whitened,
+                   noise_scale=1.0 / noise_std, noise_whitened=points * (1.0 / noise_std)[:, None, :], offset=offset,
+                   inverse_bandwidth=1.0 / bandwidth, pca_retries=pca_retries)

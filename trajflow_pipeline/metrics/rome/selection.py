@@ -10,22 +10,60 @@ from trajflow_pipeline.metrics.rome.candidates import unique_rows
 UNSCORED = -1.1
 #: bytes of the per-candidate distance blocks scored at once
 SCORE_BLOCK_BYTES = 1 << 26
+#: bytes of one distance plane block (a few sets at a time, so that the running sums stay in a core's cache)
+PLANE_BLOCK_BYTES = 1 << 17
+#: numpy sums a contiguous float64 axis in eight interleaved running sums up to this length, halving above it
+PAIRWISE_BLOCK = 128
 
 
 def silhouette_distances(points: np.ndarray) -> np.ndarray:
-    """(B, n, n) distances as ROME computes them for its silhouettes (squared differences summed by numpy over the
-    last axis, then the square root), in blocks of rows of at most SCORE_BLOCK_BYTES of differences: each
-    distance is its own reduction, so blocking changes no bit."""
+    """(B, n, n) distances as ROME computes them for its silhouettes: numpy's sqrt(((x - y)**2).sum(-1)).
+
+    The squared differences are summed one coordinate plane at a time in the order numpy's pairwise summation
+    uses for a contiguous axis (docs/rome.md), so every distance has numpy's bits (tested) without the (n, n, D)
+    temporary; a few sets at a time, so that the running sums stay in cache.
+    """
     n_sets, n, n_features = points.shape
     out = np.empty((n_sets, n, n))
-    rows = max(1, SCORE_BLOCK_BYTES // (8 * n * n_features))
-    sets = max(1, rows // n)
-    for start in range(0, n_sets, sets):
-        block = points[start:start + sets]
-        for row in range(0, n, rows):
-            out[start:start + sets, row:row + rows] = np.sqrt(
-                ((block[:, row:row + rows, None, :] - block[:, None, :, :]) ** 2).sum(-1))
+    columns = np.ascontiguousarray(points.transpose(0, 2, 1))  # (B, D, n)
+    step = max(1, PLANE_BLOCK_BYTES // (8 * n * n))
+    for start in range(0, n_sets, step):
+        block = columns[start:start + step]
+
+        def plane(k: int) -> np.ndarray:
+            difference = block[:, k, :, None] - block[:, k, None, :]
+            return np.multiply(difference, difference, out=difference)
+
+        out[start:start + step] = np.sqrt(_pairwise_sum(plane, 0, n_features))
     return out
+
+
+def _pairwise_sum(plane, start: int, count: int) -> np.ndarray:
+    """The sum of planes start .. start + count - 1 in numpy's pairwise order for float64 (`add.reduce` over a
+    contiguous axis): sequential below 8 terms; up to PAIRWISE_BLOCK, eight interleaved running sums combined as
+    ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)), then the remainder in order; above, the two halves (the
+    first a multiple of 8 long) summed alike and added."""
+    if count < 8:
+        total = plane(start)
+        for k in range(start + 1, start + count):
+            total += plane(k)
+        return total
+    if count <= PAIRWISE_BLOCK:
+        sums = [plane(start + j) for j in range(8)]
+        whole = count - count % 8
+        for offset in range(8, whole, 8):
+            for j in range(8):
+                sums[j] += plane(start + offset + j)
+        for left, right in ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (4, 6), (0, 4)):
+            sums[left] += sums[right]
+        for k in range(start + whole, start + count):
+            sums[0] += plane(k)
+        return sums[0]
+    half = count // 2
+    half -= half % 8
+    total = _pairwise_sum(plane, start, half)
+    total += _pairwise_sum(plane, start + half, count - half)
+    return total
 
 
 def distinct_rows(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
