@@ -249,10 +249,14 @@ def test_batched_and_single_fits_agree() -> None:
 
 
 def test_silhouette_distances_do_not_depend_on_their_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Big pooled sets are computed a few rows at a time (bounded memory); every distance keeps its bits."""
+    """ROME's silhouette distances are numpy's sqrt(((x - y)**2).sum(-1)); ours are summed plane by plane in
+    numpy's pairwise order, a few sets at a time: every distance keeps numpy's bits, for any dimension (sequential
+    below 8 terms, interleaved sums up to 128, halves above) and any block."""
     from trajflow_pipeline.metrics.rome import selection
 
-    points = _synthetic_sets(3, 90, 24, seed=2)
-    whole = np.sqrt(((points[:, :, None, :] - points[:, None, :, :]) ** 2).sum(-1))
-    monkeypatch.setattr(selection, "SCORE_BLOCK_BYTES", 8 * 90 * 24 * 7)  # 7 rows of one set per block
-    assert np.array_equal(selection.silhouette_distances(points), whole)
+    for dim in (1, 7, 8, 24, 131, 300):
+        points = _synthetic_sets(3, 40, dim, seed=dim)
+        whole = np.sqrt(((points[:, :, None, :] - points[:, None, :, :]) ** 2).sum(-1))
+        for block in (8 * 40 * 40, 1 << 30):  # one set per block, all sets in one
+            monkeypatch.setattr(selection, "PLANE_BLOCK_BYTES", block)
+            assert np.array_equal(selection.silhouette_distances(points), whole), (dim, block)

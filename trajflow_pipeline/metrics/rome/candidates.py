@@ -13,8 +13,8 @@ EPS_STEPS = np.linspace(0, 1, 100) ** 2
 XI_VALUES = np.linspace(0.01, 0.99, 99)
 #: ROME asks Xi for clusters of at least this many points
 MIN_CLUSTER_SIZE = 2
-#: lanes (point sets x xi values) x points per Xi block, to bound its working memory
-XI_BLOCK = 1 << 21
+#: lanes (point sets x xi values) x points per Xi block (bounds its working memory; small enough to stay in cache)
+XI_BLOCK = 1 << 19
 
 
 def dbscan_plot_labels(graph: OpticsGraph) -> np.ndarray:
@@ -52,13 +52,16 @@ def xi_labels_in_plot_order(graph: OpticsGraph) -> np.ndarray:
         for s in range(0, n_sets, step)], axis=0)
 
 
-def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def unique_rows(rows: np.ndarray, bound: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(first, inverse) for integer rows (R, n): the index of each distinct row's first occurrence, ascending, and
-    for every row the position of its distinct twin in `first`. Rows are grouped by a linear key and then
-    compared in full, so a key collision only costs a repeated row, never a wrong one."""
-    keys = rows @ (np.random.default_rng(0).random(rows.shape[1]) + 1.0)
-    order = np.lexsort((np.arange(rows.shape[0]), keys))
-    ordered = rows[order]
+    for every row the position of its distinct twin in `first`. Rows are packed into 64-bit words (as 16-bit
+    integers when their values allow: `bound`, when given, is a known bound on their magnitude), grouped by a hash
+    of the words and then compared word for word, so a hash collision only costs a repeated row, never a wrong one."""
+    words = _packed_words(rows, bound)
+    weights = np.random.default_rng(0).integers(0, np.iinfo(np.int64).max, size=words.shape[1], dtype=np.uint64)
+    keys = (words * (weights | np.uint64(1))).sum(axis=1, dtype=np.uint64)  # unsigned arithmetic wraps around
+    order = np.argsort(keys, kind="stable")
+    ordered = words[order]
     new = np.ones(order.size, dtype=bool)
     new[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
     group = np.cumsum(new) - 1
@@ -71,12 +74,24 @@ def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first[by_position], inverse
 
 
+def _packed_words(rows: np.ndarray, bound: int | None) -> np.ndarray:
+    """Integer rows (R, n) as (R, w) uint64 words holding the same values (int16 when they fit), zero padded."""
+    limit = np.iinfo(np.int16).max
+    small = rows.size == 0 or (bound <= limit if bound is not None else
+                               rows.min() >= -limit and rows.max() <= limit)
+    dtype = np.dtype(np.int16) if small else np.dtype(np.int64)
+    per_word = 8 // dtype.itemsize
+    packed = np.zeros((rows.shape[0], -(-rows.shape[1] // per_word) * per_word), dtype=dtype)
+    packed[:, :rows.shape[1]] = rows
+    return packed.view(np.uint64)
+
+
 def tidy(labels: np.ndarray) -> np.ndarray:
     """ROME's clean-up of a candidate with more than one label: clusters of one point become noise (-1) and the
     others are renumbered 0, 1, ... in the order of their old labels; a candidate with a single label becomes
     all zeros. labels (..., n) with values in [-1, n); each distinct candidate is tidied once."""
     shape = labels.shape
-    first, inverse = unique_rows(labels.reshape(-1, shape[-1]))
+    first, inverse = unique_rows(labels.reshape(-1, shape[-1]), bound=shape[-1])
     return _tidy_rows(labels.reshape(-1, shape[-1])[first])[inverse].reshape(shape)
 
 

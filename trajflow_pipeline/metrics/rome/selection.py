@@ -8,8 +8,8 @@ from trajflow_pipeline.metrics.rome.candidates import unique_rows
 
 #: ROME's score for a candidate it does not consider (a single label): below any silhouette
 UNSCORED = -1.1
-#: bytes of the per-candidate distance blocks scored at once
-SCORE_BLOCK_BYTES = 1 << 26
+#: bytes of the per-candidate distance blocks scored at once (small enough to stay in cache)
+SCORE_BLOCK_BYTES = 1 << 24
 #: bytes of one distance plane block (a few sets at a time, so that the running sums stay in a core's cache)
 PLANE_BLOCK_BYTES = 1 << 17
 #: numpy sums a contiguous float64 axis in eight interleaved running sums up to this length, halving above it
@@ -72,55 +72,87 @@ def distinct_rows(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     candidate's distinct twin. A candidate's set is part of its identity."""
     n_sets, n_candidates, n = labels.shape
     tagged = np.concatenate([np.repeat(np.arange(n_sets), n_candidates)[:, None], labels.reshape(-1, n)], axis=1)
-    first, inverse = unique_rows(tagged)
+    first, inverse = unique_rows(tagged, bound=max(n_sets, n))
     return first, inverse.reshape(n_sets, n_candidates)
 
 
-def _silhouette_pair(distances: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """ROME's noise-weighted score of candidates (U, n) given their sets' distances (U, n, n): with noise as one
-    cluster and with each noise point its own cluster, scikit-learn's silhouette_score of each, mixed by the
-    noise fraction."""
+def neighbour_ranks(distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted (n, n), ranks (n, n)): each point's distances in ascending order and the rank of every point in its
+    row's order, in the smallest unsigned type that holds n + 1 (`nearest_member` reads them)."""
+    n = distances.shape[0]
+    dtype = np.uint8 if n < 255 else np.uint16 if n < 65535 else np.uint32
+    order = np.argsort(distances, axis=1)  # any order of tied distances gives the same nearest distance
+    ranks = np.empty((n, n), dtype=dtype)
+    np.put_along_axis(ranks, order, np.arange(n, dtype=dtype)[None, :], axis=1)
+    return np.take_along_axis(distances, order, axis=1), ranks
+
+
+def nearest_member(sorted_distances: np.ndarray, ranks: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """(U, n): each point's distance to its nearest point of each subset members (U, n) of one set, inf where a
+    subset is empty: a minimum over small integer ranks (an eighth of the memory traffic of one over the
+    distances), then one lookup, so the value is the distance itself."""
+    n = members.shape[1]
+    outside = np.where(members, 0, np.iinfo(ranks.dtype).max).astype(ranks.dtype)
+    rank = np.maximum(ranks[None, :, :], outside[:, None, :]).min(axis=2)            # (U, n)
+    found = rank < n
+    value = sorted_distances[np.arange(n)[None, :], np.minimum(rank, n - 1)]
+    return np.where(found, value, np.inf)
+
+
+def _silhouette_pair(distances: np.ndarray, labels: np.ndarray, nearest_noise: np.ndarray) -> np.ndarray:
+    """ROME's noise-weighted score of candidates (U, n) of one set with distances (n, n), given each point's
+    distance to its nearest noise point (U, n): with noise as one cluster and with each noise point its own
+    cluster, scikit-learn's silhouette_score of each, mixed by the noise fraction."""
     n_candidates, n = labels.shape
     n_buckets = int(labels.max()) + 2                                  # bucket 0 is the noise
     buckets = labels + 1
-    one_hot = np.zeros((n_candidates, n, n_buckets))
-    np.put_along_axis(one_hot, buckets[:, :, None], 1.0, axis=2)
-    sums = np.matmul(distances, one_hot)                               # (U, n, K): distance sums to each bucket
-    sizes = one_hot.sum(axis=1)                                        # (U, K)
+    one_hot = np.zeros((n, n_candidates, n_buckets))
+    one_hot[np.arange(n)[:, None], np.arange(n_candidates)[None, :], buckets.T] = 1.0
+    # distance sums to each bucket (U, n, K), one matrix product for all candidates of the set
+    sums = (distances @ one_hot.reshape(n, -1)).reshape(n, n_candidates, n_buckets).transpose(1, 0, 2)
+    sizes = one_hot.sum(axis=0)                                        # (U, K)
     own = np.take_along_axis(sums, buckets[:, :, None], axis=2)[:, :, 0]
     own_size = np.take_along_axis(sizes, buckets, axis=1)
+    noise = labels == -1
     with np.errstate(divide="ignore", invalid="ignore"):
         intra = own / (own_size - 1)
-        means = sums / sizes[:, None, :]
-    means[np.broadcast_to(sizes[:, None, :] == 0, means.shape)] = np.inf
-    np.put_along_axis(means, buckets[:, :, None], np.inf, axis=2)
-    inter_combined = means.min(axis=2)
-    noise = labels == -1
-    means[:, :, 0] = np.inf
-    nearest_noise = np.where(noise[:, None, :], distances, np.inf).min(axis=2)
-    inter_separate = np.minimum(means.min(axis=2), nearest_noise)
-    intra_separate = np.where(noise, np.nan, intra)
-    scores = []
-    for inter, intra_of in ((inter_separate, intra_separate), (inter_combined, intra)):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            samples = (inter - intra_of) / np.maximum(intra_of, inter)
-        scores.append(np.nan_to_num(samples).mean(axis=1))
+        # mean distance to each other, non-empty bucket; inf for a point's own bucket and for empty ones
+        means = np.where((sizes > 0)[:, None, :] & (one_hot.transpose(1, 0, 2) == 0), sums / sizes[:, None, :],
+                         np.inf)
+        inter_combined = means.min(axis=2)
+        inter_separate = np.minimum(means[:, :, 1:].min(axis=2), nearest_noise)
+        intra_separate = np.where(noise, np.nan, intra)
+        scores = []
+        for inter, intra_of in ((inter_separate, intra_separate), (inter_combined, intra)):
+            samples = (inter - intra_of) / np.maximum(intra_of, inter)   # nan (0/0, inf/inf) counts as 0
+            scores.append(np.where(np.isnan(samples), 0.0, samples).mean(axis=1))
     noise_fraction = noise.sum(axis=1) / n
     return noise_fraction * scores[0] + (1 - noise_fraction) * scores[1]
 
 
 def best_clustering(candidates: np.ndarray, distances: np.ndarray) -> np.ndarray:
-    """(B, n): per set, ROME's chosen candidate among (B, C, n), scored with the sets' distances (B, n, n)."""
+    """(B, n): per set, ROME's chosen candidate among (B, C, n), scored with the sets' distances (B, n, n).
+
+    Each distinct candidate is scored once, a set's candidates together (a few at a time for big sets, so that the
+    rank arrays stay within SCORE_BLOCK_BYTES)."""
     n_sets, n_candidates, n = candidates.shape
     first, inverse = distinct_rows(candidates)
     flat = candidates.reshape(-1, n)[first]
     sets = first // n_candidates
     useful = flat.max(axis=1) > flat.min(axis=1)
     values = np.full(first.size, UNSCORED)
-    scored = np.flatnonzero(useful)
-    step = max(1, SCORE_BLOCK_BYTES // (8 * n * n * 4))
-    for start in range(0, scored.size, step):
-        rows = scored[start:start + step]
-        values[rows] = _silhouette_pair(distances[sets[rows]], flat[rows])
+    scored = np.flatnonzero(useful)                                    # ascending, so grouped by set
+    bounds = np.searchsorted(sets[scored], np.arange(n_sets + 1))
+    step = max(1, SCORE_BLOCK_BYTES // (n * n))
+    for b in range(n_sets):
+        of_set = scored[bounds[b]:bounds[b + 1]]
+        if of_set.size == 0:
+            continue
+        sorted_distances, ranks = neighbour_ranks(distances[b])
+        for start in range(0, of_set.size, step):
+            rows = of_set[start:start + step]
+            labels = flat[rows]
+            values[rows] = _silhouette_pair(distances[b], labels,
+                                            nearest_member(sorted_distances, ranks, labels == -1))
     chosen = np.argmax(values[inverse], axis=1)
     return candidates[np.arange(n_sets), chosen]

@@ -18,13 +18,14 @@ def _region_ends(steep: np.ndarray, xward: np.ndarray, min_samples: int) -> np.n
     The area ends at the last steep point before the stop.
     """
     n_lanes, n = steep.shape
-    positions = np.arange(n)
+    positions = np.arange(n, dtype=np.int32)  # 32-bit positions: half the memory traffic of int64
+    none_before, none_after = np.int32(-1), np.int32(n)
     neutral = ~steep & ~xward
-    last_break = np.maximum.accumulate(np.where(neutral, -1, positions), axis=1)
+    last_break = np.maximum.accumulate(np.where(neutral, none_before, positions), axis=1)
     stop = (xward & ~steep) | (neutral & (positions - last_break > min_samples))
-    first_stop = np.minimum.accumulate(np.where(stop, positions, n)[:, ::-1], axis=1)[:, ::-1]
-    stop_after = np.concatenate([first_stop[:, 1:], np.full((n_lanes, 1), n)], axis=1)
-    last_steep = np.maximum.accumulate(np.where(steep, positions, -1), axis=1)
+    first_stop = np.minimum.accumulate(np.where(stop, positions, none_after)[:, ::-1], axis=1)[:, ::-1]
+    stop_after = np.concatenate([first_stop[:, 1:], np.full((n_lanes, 1), n, dtype=np.int32)], axis=1)
+    last_steep = np.maximum.accumulate(np.where(steep, positions, none_before), axis=1)
     return np.take_along_axis(last_steep, stop_after - 1, axis=1)
 
 
