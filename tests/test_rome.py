@@ -13,6 +13,7 @@ from trajflow_pipeline.metrics import rome
 from trajflow_pipeline.metrics.parallel import RomeTask, fit_and_score
 from trajflow_pipeline.metrics.rome.candidates import XI_VALUES, candidate_clusterings
 from trajflow_pipeline.metrics.rome.mixture import fit_mixture
+from trajflow_pipeline.metrics.rome.distances import distance_matrices
 from trajflow_pipeline.metrics.rome.optics import optics_graph
 from trajflow_pipeline.metrics.rome.reference import ReferenceDensity
 
@@ -53,7 +54,7 @@ def test_optics_graph_is_scikit_learns_bit_for_bit(shape: tuple[int, int, int]) 
     from sklearn.cluster import OPTICS
 
     points = _synthetic_sets(*shape, seed=sum(shape))
-    graph = optics_graph(points)
+    graph = optics_graph(points, distance_matrices(points)[0])
     for b in range(shape[0]):
         library = OPTICS(min_samples=graph.min_samples).fit(points[b])
         assert np.array_equal(library.ordering_, graph.ordering[b])
@@ -88,7 +89,7 @@ def _reference_candidates(graph, b: int) -> np.ndarray:
 @pytest.mark.parametrize("shape", [(60, 100, 24), (30, 100, 48), (60, 30, 4), (6, 300, 24), (60, 12, 2)])
 def test_candidate_clusterings_are_the_references(shape: tuple[int, int, int]) -> None:
     points = _synthetic_sets(*shape, seed=7 + sum(shape))
-    graph = optics_graph(points)
+    graph = optics_graph(points, distance_matrices(points)[0])
     ours = candidate_clusterings(graph)
     for b in range(shape[0]):
         assert np.array_equal(ours[b], _reference_candidates(graph, b)), b
@@ -248,15 +249,20 @@ def test_batched_and_single_fits_agree() -> None:
         assert np.array_equal(rome.cluster(points[b:b + 1])[0], together[b])
 
 
-def test_silhouette_distances_do_not_depend_on_their_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
-    """ROME's silhouette distances are numpy's sqrt(((x - y)**2).sum(-1)); ours are summed plane by plane in
-    numpy's pairwise order, a few sets at a time: every distance keeps numpy's bits, for any dimension (sequential
-    below 8 terms, interleaved sums up to 128, halves above) and any block."""
-    from trajflow_pipeline.metrics.rome import selection
+def test_distance_matrices_have_scipys_and_numpys_bits_in_any_block(monkeypatch: pytest.MonkeyPatch) -> None:
+    """OPTICS's distances are scipy's cdist (squared differences summed in coordinate order) and ROME's silhouette
+    distances numpy's sqrt(((x - y)**2).sum(-1)) (numpy's pairwise order: sequential below 8 terms, interleaved
+    sums up to 128, halves above); both come from one pass, a few sets at a time, and keep those bits for any
+    dimension and any block."""
+    from scipy.spatial.distance import cdist
+
+    from trajflow_pipeline.metrics.rome import distances
 
     for dim in (1, 7, 8, 24, 131, 300):
         points = _synthetic_sets(3, 40, dim, seed=dim)
-        whole = np.sqrt(((points[:, :, None, :] - points[:, None, :, :]) ** 2).sum(-1))
+        numpy_order = np.sqrt(((points[:, :, None, :] - points[:, None, :, :]) ** 2).sum(-1))
+        scipy_order = np.stack([cdist(p, p) for p in points])
         for block in (8 * 40 * 40, 1 << 30):  # one set per block, all sets in one
-            monkeypatch.setattr(selection, "PLANE_BLOCK_BYTES", block)
-            assert np.array_equal(selection.silhouette_distances(points), whole), (dim, block)
+            monkeypatch.setattr(distances, "PLANE_BLOCK_BYTES", block)
+            in_order, pairwise = distances.distance_matrices(points)
+            assert np.array_equal(in_order, scipy_order) and np.array_equal(pairwise, numpy_order), (dim, block)

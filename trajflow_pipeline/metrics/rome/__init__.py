@@ -11,8 +11,9 @@ import numpy as np
 
 from trajflow_pipeline.metrics.rome.candidates import candidate_clusterings
 from trajflow_pipeline.metrics.rome.mixture import Mixture, fit_mixture
-from trajflow_pipeline.metrics.rome.optics import euclidean_distances, optics_graph
-from trajflow_pipeline.metrics.rome.selection import best_clustering, silhouette_distances
+from trajflow_pipeline.metrics.rome.distances import distance_matrices
+from trajflow_pipeline.metrics.rome.optics import optics_graph
+from trajflow_pipeline.metrics.rome.selection import best_clustering
 
 #: ROME's default minimum standard deviation (metres here); the reference framework uses the default too
 DEFAULT_MIN_STD = 0.1
@@ -31,8 +32,8 @@ def cluster(points: np.ndarray) -> np.ndarray:
     n_sets, n, _ = points.shape
     if n < MIN_POINTS_TO_CLUSTER:
         return np.zeros((n_sets, n), dtype=np.int64)
-    graph = optics_graph(points, euclidean_distances(points))
-    return best_clustering(candidate_clusterings(graph), silhouette_distances(points))
+    in_order, pairwise = distance_matrices(points)
+    return best_clustering(candidate_clusterings(optics_graph(points, in_order)), pairwise)
 
 
 def fit(points: np.ndarray, min_std: float | np.ndarray = DEFAULT_MIN_STD) -> Mixture:

@@ -32,34 +32,6 @@ def rome_min_samples(n_points: int, n_features: int) -> int:
     return int(np.clip(n_points * n_features / 400, min(5, n_points), min(20, n_points)))
 
 
-#: bytes of one block of the distance computation (a few sets at a time stay in a core's cache)
-DISTANCE_BLOCK_BYTES = 1 << 18
-
-
-def euclidean_distances(points: np.ndarray) -> np.ndarray:
-    """(B, n, n) distances, summing squared coordinate differences in coordinate order before the square root.
-
-    That is the order of scipy's cdist, which OPTICS uses for reachabilities, and of the k-d tree that finds
-    core distances in few dimensions, so these equal theirs to the bit. Computed a few sets at a time so that
-    the working block stays in cache.
-    """
-    n_sets, n, n_features = points.shape
-    out = np.empty((n_sets, n, n))
-    step = max(1, DISTANCE_BLOCK_BYTES // (8 * n * n))
-    columns = np.ascontiguousarray(points.transpose(0, 2, 1))  # (B, D, n)
-    scratch = np.empty((min(step, n_sets), n, n))
-    for start in range(0, n_sets, step):
-        stop = min(n_sets, start + step)
-        squared, difference = out[start:stop], scratch[:stop - start]
-        squared.fill(0.0)
-        for k in range(n_features):
-            np.subtract(columns[start:stop, k, :, None], columns[start:stop, k, None, :], out=difference)
-            np.multiply(difference, difference, out=difference)
-            squared += difference
-        np.sqrt(squared, out=squared)
-    return out
-
-
 def _expanded_core_distances(points: np.ndarray, k: int) -> np.ndarray:
     """Distance to the k-th nearest point (itself included) as scikit-learn's brute-force search finds it:
     sqrt(max(|x|^2 + (-2 x.y) + |y|^2, 0)), the middle term from the same BLAS dgemm call on the same
@@ -91,16 +63,15 @@ def core_distances(points: np.ndarray, distances: np.ndarray, k: int) -> np.ndar
     return np.around(core, decimals=ROUNDING, out=core)
 
 
-def optics_graph(points: np.ndarray, distances: np.ndarray | None = None) -> OpticsGraph:
-    """OPTICS (no distance limit, Euclidean, ROME's min_samples) of each of B point sets (B, n, D).
+def optics_graph(points: np.ndarray, distances: np.ndarray) -> OpticsGraph:
+    """OPTICS (no distance limit, Euclidean, ROME's min_samples) of each of B point sets (B, n, D), given their
+    distances as scipy's cdist sums them (`distances.distance_matrices`).
 
     The visiting loop runs once over the n positions for all sets together: the next point is the unvisited one
     with the smallest reachability (lowest index on ties, as scikit-learn), whose distances then lower the others'.
     """
     n_sets, n_points, n_features = points.shape
     k = rome_min_samples(n_points, n_features)
-    if distances is None:
-        distances = euclidean_distances(points)
     core = core_distances(points, distances, k)
     reachability = np.full((n_sets, n_points), np.inf)
     predecessor = np.full((n_sets, n_points), -1, dtype=np.int64)

@@ -10,62 +10,6 @@ from trajflow_pipeline.metrics.rome.candidates import unique_rows
 UNSCORED = -1.1
 #: bytes of the per-candidate distance blocks scored at once (small enough to stay in cache)
 SCORE_BLOCK_BYTES = 1 << 24
-#: bytes of one distance plane block (a few sets at a time, so that the running sums stay in a core's cache)
-PLANE_BLOCK_BYTES = 1 << 17
-#: numpy sums a contiguous float64 axis in eight interleaved running sums up to this length, halving above it
-PAIRWISE_BLOCK = 128
-
-
-def silhouette_distances(points: np.ndarray) -> np.ndarray:
-    """(B, n, n) distances as ROME computes them for its silhouettes: numpy's sqrt(((x - y)**2).sum(-1)).
-
-    The squared differences are summed one coordinate plane at a time in the order numpy's pairwise summation
-    uses for a contiguous axis (docs/rome.md), so every distance has numpy's bits (tested) without the (n, n, D)
-    temporary; a few sets at a time, so that the running sums stay in cache.
-    """
-    n_sets, n, n_features = points.shape
-    out = np.empty((n_sets, n, n))
-    columns = np.ascontiguousarray(points.transpose(0, 2, 1))  # (B, D, n)
-    step = max(1, PLANE_BLOCK_BYTES // (8 * n * n))
-    for start in range(0, n_sets, step):
-        block = columns[start:start + step]
-
-        def plane(k: int) -> np.ndarray:
-            difference = block[:, k, :, None] - block[:, k, None, :]
-            return np.multiply(difference, difference, out=difference)
-
-        out[start:start + step] = np.sqrt(_pairwise_sum(plane, 0, n_features))
-    return out
-
-
-def _pairwise_sum(plane, start: int, count: int) -> np.ndarray:
-    """The sum of planes start .. start + count - 1 in numpy's pairwise order for float64 (`add.reduce` over a
-    contiguous axis): sequential below 8 terms; up to PAIRWISE_BLOCK, eight interleaved running sums combined as
-    ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)), then the remainder in order; above, the two halves (the
-    first a multiple of 8 long) summed alike and added."""
-    if count < 8:
-        total = plane(start)
-        for k in range(start + 1, start + count):
-            total += plane(k)
-        return total
-    if count <= PAIRWISE_BLOCK:
-        sums = [plane(start + j) for j in range(8)]
-        whole = count - count % 8
-        for offset in range(8, whole, 8):
-            for j in range(8):
-                sums[j] += plane(start + offset + j)
-        for left, right in ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (4, 6), (0, 4)):
-            sums[left] += sums[right]
-        for k in range(start + whole, start + count):
-            sums[0] += plane(k)
-        return sums[0]
-    half = count // 2
-    half -= half % 8
-    total = _pairwise_sum(plane, start, half)
-    total += _pairwise_sum(plane, start + half, count - half)
-    return total
-
-
 def distinct_rows(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For candidates (B, C, n): (first, inverse) with `first` the flat indices (b * C + c) of each distinct
     candidate of each set (first occurrence, ascending) and `inverse` (B, C) the position in `first` of each
@@ -106,21 +50,19 @@ def _silhouette_pair(distances: np.ndarray, labels: np.ndarray, nearest_noise: n
     n_candidates, n = labels.shape
     n_buckets = int(labels.max()) + 2                                  # bucket 0 is the noise
     buckets = labels + 1
-    one_hot = np.zeros((n, n_candidates, n_buckets))
-    one_hot[np.arange(n)[:, None], np.arange(n_candidates)[None, :], buckets.T] = 1.0
-    # distance sums to each bucket (U, n, K), one matrix product for all candidates of the set
-    sums = (distances @ one_hot.reshape(n, -1)).reshape(n, n_candidates, n_buckets).transpose(1, 0, 2)
-    sizes = one_hot.sum(axis=0)                                        # (U, K)
-    own = np.take_along_axis(sums, buckets[:, :, None], axis=2)[:, :, 0]
-    own_size = np.take_along_axis(sizes, buckets, axis=1)
+    member = buckets[None, :, :] == np.arange(n_buckets)[:, None, None]                   # (K, U, n)
+    # each point's distance sums to each bucket (K, U, n): one matrix product (distances are symmetric)
+    sums = (member.reshape(-1, n).astype(np.float64) @ distances).reshape(member.shape)
+    sizes = member.sum(axis=2)                                                          # (K, U)
+    own = np.take_along_axis(sums, buckets[None], axis=0)[0]                            # (U, n)
+    own_size = sizes[buckets, np.arange(n_candidates)[:, None]]                         # (U, n)
     noise = labels == -1
     with np.errstate(divide="ignore", invalid="ignore"):
         intra = own / (own_size - 1)
         # mean distance to each other, non-empty bucket; inf for a point's own bucket and for empty ones
-        means = np.where((sizes > 0)[:, None, :] & (one_hot.transpose(1, 0, 2) == 0), sums / sizes[:, None, :],
-                         np.inf)
-        inter_combined = means.min(axis=2)
-        inter_separate = np.minimum(means[:, :, 1:].min(axis=2), nearest_noise)
+        means = np.where(member | (sizes == 0)[:, :, None], np.inf, sums / sizes[:, :, None])
+        inter_combined = np.minimum.reduce(means, axis=0)
+        inter_separate = np.minimum(np.minimum.reduce(means[1:], axis=0), nearest_noise)
         intra_separate = np.where(noise, np.nan, intra)
         scores = []
         for inter, intra_of in ((inter_separate, intra_separate), (inter_combined, intra)):
