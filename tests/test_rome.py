@@ -153,6 +153,27 @@ def _kde(points: np.ndarray, queries: np.ndarray, silverman_n: int, dim: int) ->
             - dim * np.log(bandwidth) - wide(0.5 * dim) * np.log(2 * wide(np.pi)))
 
 
+@pytest.mark.parametrize("case", ["all noise", "clusters and noise", "fewer points than dimensions", "chosen"])
+def test_exact_density_is_the_extended_precision_one(case: str) -> None:
+    """The batched exact density against ROME's density written out in extended precision, for labellings ROME's
+    clustering rarely or never chooses and for the ones it chooses (no romepy needed, so numpy 2 runs it too)."""
+    rng = np.random.default_rng(3)
+    points = _synthetic_sets(4, 60, 48 if case == "fewer points than dimensions" else 24, seed=8)
+    labels = rome.cluster(points)
+    if case == "all noise":
+        labels[:] = -1
+    elif case == "clusters and noise":
+        labels = rng.integers(-1, 3, size=labels.shape)
+    elif case == "fewer points than dimensions":
+        labels = np.where(np.arange(60) < 30, 0, 1)[None].repeat(4, axis=0)   # 30 points per cluster, D = 48
+    queries = np.concatenate([points[:, :3] + rng.normal(size=(4, 3, points.shape[2])) * 0.3, points[:, :1] + 3.0],
+                             axis=1)
+    exact = fit_mixture(points, labels, 0.1).log_density(queries)
+    for b in range(4):
+        np.testing.assert_allclose(exact[b], _extended_precision_density(points[b], labels[b], queries[b]),
+                                   rtol=1e-10)
+
+
 def _romepy():
     """romepy's ROME class, or a skip saying why the reference comparison does not run."""
     try:
