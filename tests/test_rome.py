@@ -287,3 +287,37 @@ def test_distance_matrices_have_scipys_and_numpys_bits_in_any_block(monkeypatch:
             monkeypatch.setattr(distances, "PLANE_BLOCK_BYTES", block)
             in_order, pairwise = distances.distance_matrices(points)
             assert np.array_equal(in_order, scipy_order) and np.array_equal(pairwise, numpy_order), (dim, block)
+
+
+def test_rome_on_the_draws_of_a_shipped_trajflow_model(eth_ucy_dataset: Path, tmp_path: Path) -> None:
+    """Real TrajFlow draws: the shipped fold-eth model samples the test problems (100 draws each); per agent
+    (24 dimensions) and per 2-agent joint group (48) the exact density is the extended-precision one and, where
+    romepy is installed, romepy's clustering and (where romepy is exact) its values."""
+    import shutil
+
+    import polars as pl
+
+    from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
+
+    shipped = Path(__file__).resolve().parents[1] / "docs" / "results" / "eth_ucy" / "models" / "trajflow-eth-s0"
+    run = Path(shutil.copytree(shipped, tmp_path / "run"))
+    out = evaluate(run, data=eth_ucy_dataset, options=EvalOptions(metrics=("min_ade",), workers=1), quiet=True)
+    draws = pl.read_parquet(out / "predictions.parquet").sort("sample_id", "draw", "step")
+    truth = pl.read_parquet(out / "ground_truth.parquet").filter(pl.col("step") >= 1).sort("sample_id", "step")
+    ids = truth["sample_id"].unique().sort().to_numpy()
+    pred = draws.select("x", "y").to_numpy().reshape(ids.size, 100, -1)[:, :, :24]
+    gt = truth.filter(pl.col("step") <= 12).select("x", "y").to_numpy().reshape(ids.size, 24)
+    joint = truth.filter(pl.col("step") == 1)["joint_id"].to_numpy()
+    pairs = [np.flatnonzero(joint == key) for key, count in zip(*np.unique(joint, return_counts=True)) if count == 2]
+    cases = [(pred[a], gt[a:a + 1] + np.array([[0.0, 0.3] * 12])) for a in range(0, ids.size, ids.size // 8)][:8]
+    cases += [(pred[p].transpose(1, 0, 2).reshape(100, 48), gt[p].reshape(1, 48)) for p in pairs[:4]]
+    assert len(cases) >= 10
+    for points, queries in cases:
+        try:
+            _romepy()
+        except pytest.skip.Exception:
+            labels = rome.cluster(points[None])[0]
+            (exact,) = fit_and_score(RomeTask(fit=points, queries=(queries,)))
+            np.testing.assert_allclose(exact, _extended_precision_density(points, labels, queries), rtol=1e-10)
+        else:
+            _assert_same_as_romepy(points, queries)
