@@ -178,6 +178,22 @@ def test_degenerate_sample_sets_are_data_errors() -> None:
         density_metrics(pred, gt, metrics={"nll"}, max_pooled=1)
 
 
+@pytest.mark.parametrize("fit, query, message", [
+    (np.zeros((0, 4)), np.zeros((1, 4)), "at least 2 samples"),
+    (np.ones((1, 4)), np.zeros((1, 4)), "at least 2 samples"),
+    (np.ones(4), np.zeros((1, 4)), "at least 2 samples"),
+    (np.full((10, 4), np.nan), np.zeros((1, 4)), "non-finite values"),
+    (np.arange(40.0).reshape(10, 4), np.zeros((1, 3)), "density is over 4 dimensions"),
+    (np.ones((10, 4)), np.zeros((1, 4)), "degenerate"),
+])
+def test_bad_rome_tasks_are_data_errors_naming_the_task(fit: np.ndarray, query: np.ndarray, message: str) -> None:
+    from trajflow_pipeline.metrics.parallel import RomeTask, fit_and_score
+
+    with pytest.raises(DataError, match=message) as error:
+        fit_and_score(RomeTask(fit=fit, queries=(query,), label="agent 7 of run r"))
+    assert "agent 7 of run r" in str(error.value)
+
+
 def test_points_whose_distances_overflow_are_refused() -> None:
     from trajflow_pipeline.metrics.parallel import RomeTask, fit_and_score
 

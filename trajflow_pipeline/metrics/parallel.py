@@ -97,6 +97,9 @@ def _check_task(task: RomeTask) -> None:
     UsageError for an unknown KDE."""
     if task.kde not in KDE_CHOICES:
         raise UsageError(f"unknown ROME KDE {task.kde!r}; valid: {', '.join(KDE_CHOICES)}")
+    if np.ndim(task.fit) != 2 or np.shape(task.fit)[0] < 2:
+        raise DataError(f"cannot estimate a density for {task.label}: it needs at least 2 samples of one "
+                        f"dimension each, got an array of shape {np.shape(task.fit)}")
     if not (np.isfinite(task.fit).all() and all(np.isfinite(q).all() for q in task.queries)):
         raise DataError(f"non-finite values in the points of {task.label}")
     with np.errstate(over="ignore"):
