@@ -70,6 +70,23 @@ def test_eval_records_rome_fallbacks_even_when_quiet(tiny_run: Path, tmp_path: P
     assert (info["rome_fits"], info["rome_fallback_fits"]) == (2, 1) and "rome_fits_ext" not in info
 
 
+def test_eval_records_how_rome_densities_were_computed(tiny_run: Path, tmp_path: Path) -> None:
+    """The exact KDE by default, scikit-learn's as romepy calls it on request: eval.json says which; an unknown
+    name is a usage error before any work."""
+    pytest.importorskip("sklearn", reason="the reference KDE needs scikit-learn (the dev or reference extra)")
+    from dataclasses import replace
+
+    tables = {}
+    for kde in ("exact", "reference"):
+        run = Path(shutil.copytree(tiny_run, tmp_path / kde))
+        out = evaluate(run, options=replace(FAST, rome_kde=kde), quiet=True)
+        assert json.loads((out / "eval.json").read_text())["rome_kde"] == kde
+        tables[kde] = pl.read_parquet(out / "metrics.parquet")
+    assert tables["exact"]["metric"].to_list() == tables["reference"]["metric"].to_list()
+    with pytest.raises(UsageError, match="--rome-kde must be one of exact, reference"):
+        evaluate(tmp_path / "exact", options=replace(FAST, rome_kde="sklearn"), quiet=True)
+
+
 def test_an_interrupted_evaluation_resumes_its_rome_fits(tiny_run: Path, tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     from trajflow_pipeline.metrics import parallel
