@@ -263,11 +263,23 @@ def test_degenerate_sets_behave_as_romepy(case: str) -> None:
 
 
 def test_batched_and_single_fits_agree() -> None:
-    """A set's clustering does not depend on the other sets it is batched with."""
-    points = _synthetic_sets(12, 100, 24, seed=9)
+    """A set's clustering and density do not depend on the other sets it is batched with (to the bit): clusters
+    are decomposed on exactly their own rows, so `trajflow eval` gives the same numbers for any worker count."""
+    from trajflow_pipeline.metrics.parallel import _fit_batch
+
+    rng = np.random.default_rng(9)
+    points = _synthetic_sets(12, 100, 48, seed=9)
+    points[3] = points[3][:, :1] * 0.01 + np.linspace(0, 1, 100)[:, None]  # one set of a very different shape
+    for b in range(6, 12):  # well-separated modes of different sizes, some clusters smaller than D = 48
+        sizes = [60, 25, 15] if b < 9 else [34, 33, 33]
+        points[b] = rng.normal(size=(100, 48)) * 0.3 + np.repeat([0.0, 6.0, 12.0], sizes)[:, None]
     together = rome.cluster(points)
-    for b in (0, 5, 11):
+    tasks = [RomeTask(fit=p, queries=(p[:3] + 0.2, p[:1] + 4.0)) for p in points]
+    batched = _fit_batch(tasks)
+    for b in range(12):
         assert np.array_equal(rome.cluster(points[b:b + 1])[0], together[b])
+        alone = _fit_batch(tasks[b:b + 1])[0]
+        assert all(np.array_equal(x, y) for x, y in zip(alone[0], batched[b][0])), b
 
 
 def test_distance_matrices_have_scipys_and_numpys_bits_in_any_block(monkeypatch: pytest.MonkeyPatch) -> None:

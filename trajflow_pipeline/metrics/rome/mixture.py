@@ -16,24 +16,36 @@ PCA_ATTEMPTS = 10
 
 
 @dataclass(frozen=True)
-class Mixture:
-    """Fitted densities of B point sets of n points in D dimensions each (docs/rome.md, "The density").
+class ClusterGroup:
+    """The clusters of one size s (k of them, from any sets of a batch), each decomposed on exactly its own rows, so
+    that a fit's numbers never depend on the other fits of its batch.
 
-    Clusters are packed over all sets, K in all, ordered by set: cluster k of set `cluster_set[k]` maps a point x
-    to (x - means[k]) @ axes[k] * inverse_std[k] on its r principal axes (r = min(largest cluster, D)); every
-    direction outside those axes has zero variance, whose floored std is min_std, so it adds
-    |residual|^2 * null_inverse_std[k]^2 to a squared distance. Per point (B, n): `cluster_of` its cluster (-1:
-    noise), `whitened` (B, n, r) its image under its own cluster, `offset` its kernel's log weight, Jacobian and
-    normalisation together, `inverse_bandwidth`. Noise points are scaled per axis by `noise_scale` (B, D).
+    Cluster i of set `sets[i]` holds the points `members[i]` (s,) and maps a point x to
+    (x - means[i]) @ axes[i] * inverse_std[i] on its r = min(s, D) principal axes; every direction outside them has
+    zero variance, whose floored std is min_std, so it adds |residual|^2 * null_inverse_std[i]^2 to a squared
+    distance. `whitened` (k, s, r): the members' own images.
     """
 
-    cluster_of: np.ndarray
-    cluster_set: np.ndarray
+    sets: np.ndarray
+    members: np.ndarray
     means: np.ndarray
     axes: np.ndarray
     inverse_std: np.ndarray
     null_inverse_std: np.ndarray
     whitened: np.ndarray
+
+
+@dataclass(frozen=True)
+class Mixture:
+    """Fitted densities of B point sets of n points in D dimensions each (docs/rome.md, "The density").
+
+    `groups`: the clusters, by size (ClusterGroup). Per point (B, n): `cluster_of` its cluster (-1: noise),
+    `offset` its kernel's log weight, Jacobian and normalisation together, `inverse_bandwidth`. Noise points are
+    scaled per axis by `noise_scale` (B, D) (`noise_whitened`: all points so scaled). `pca_retries` (B,).
+    """
+
+    cluster_of: np.ndarray
+    groups: tuple[ClusterGroup, ...]
     noise_scale: np.ndarray
     noise_whitened: np.ndarray
     offset: np.ndarray
@@ -51,22 +63,22 @@ class Mixture:
 
     def _block(self, queries: np.ndarray, sets: np.ndarray) -> np.ndarray:
         """Log-densities (b, m) of the b `sets` at their queries (b, m, D), in one pass."""
-        clusters = np.flatnonzero(np.isin(self.cluster_set, sets))
-        owner = np.searchsorted(sets, self.cluster_set[clusters])                   # each cluster's row in sets
-        centred = queries[owner] - self.means[clusters][:, None, :]                 # (k, m, D)
-        axes = self.axes[clusters]
-        projected = np.matmul(centred, axes)                                       # (k, m, r)
-        residual = centred - np.matmul(projected, axes.transpose(0, 2, 1))
-        null_part = np.einsum("kmd,kmd->km", residual, residual) * self.null_inverse_std[clusters, None] ** 2
-        images = projected * self.inverse_std[clusters][:, None, :]
         cluster_of = self.cluster_of[sets]                                          # (b, n)
-        local = np.searchsorted(clusters, np.maximum(cluster_of, 0))
-        local = np.minimum(local, max(clusters.size - 1, 0))
-        if clusters.size:
-            difference = images[local] - self.whitened[sets][:, :, None, :]        # (b, n, m, r)
-            squared = np.einsum("bnmr,bnmr->bnm", difference, difference) + null_part[local]
-        else:
-            squared = np.zeros(cluster_of.shape + queries.shape[1:2])
+        squared = np.zeros(cluster_of.shape + queries.shape[1:2])                   # (b, n, m)
+        for group in self.groups:
+            chosen = np.flatnonzero(np.isin(group.sets, sets))
+            if chosen.size == 0:
+                continue
+            rows = np.searchsorted(sets, group.sets[chosen])                        # each cluster's row in sets
+            centred = queries[rows] - group.means[chosen][:, None, :]               # (k, m, D)
+            axes = group.axes[chosen]
+            projected = np.matmul(centred, axes)                                   # (k, m, r)
+            residual = centred - np.matmul(projected, axes.transpose(0, 2, 1))
+            null_part = np.einsum("kmd,kmd->km", residual, residual) * group.null_inverse_std[chosen, None] ** 2
+            images = projected * group.inverse_std[chosen][:, None, :]
+            difference = images[:, None, :, :] - group.whitened[chosen][:, :, None, :]      # (k, s, m, r)
+            squared[rows[:, None], group.members[chosen]] = (np.einsum("ksmr,ksmr->ksm", difference, difference)
+                                                             + null_part[:, None, :])
         noise = cluster_of < 0
         if noise.any():
             scaled = queries * self.noise_scale[sets][:, None, :]
@@ -84,8 +96,7 @@ class Mixture:
 
 def _score_blocks(mixture: Mixture, n_queries: int, n_sets: int) -> Iterator[tuple[slice, slice]]:
     """(sets, queries) slices whose evaluation holds at most about SCORE_BLOCK elements at once."""
-    n, width = mixture.whitened.shape[1], max(mixture.whitened.shape[2], mixture.noise_scale.shape[1])
-    per_query = n * width
+    per_query = mixture.cluster_of.shape[1] * mixture.noise_scale.shape[1]   # points x D (each cluster's r <= D)
     queries_per_block = max(1, min(n_queries, SCORE_BLOCK // per_query))
     sets_per_block = max(1, SCORE_BLOCK // (per_query * max(1, n_queries))) if queries_per_block == n_queries else 1
     for s in range(0, n_sets, sets_per_block):
@@ -175,30 +186,29 @@ def fit_mixture(points: np.ndarray, labels: np.ndarray, min_std: float | np.ndar
     index[cluster_set, cluster_label] = np.arange(cluster_set.size)
     cluster_of = np.where(noise, -1, index[set_of_point, np.maximum(labels, 0)])
 
-    # each cluster's points, gathered to the front of a zero-padded block (K, w, D)
-    is_member = cluster_of[cluster_set] == np.arange(cluster_set.size)[:, None]      # (K, n)
-    order = np.argsort(~is_member, axis=1, kind="stable")
-    width = int(sizes.max()) if sizes.size else 1
-    order = order[:, :width]
-    real = np.arange(width)[None, :] < sizes[:, None]
-    block = points[cluster_set[:, None], order]
-    means = np.where(real[:, :, None], block, 0.0).sum(axis=1) / sizes[:, None] if sizes.size else \
-        np.zeros((0, n_features))
-    centred = np.where(real[:, :, None], block - means[:, None, :], 0.0)
-    stds = np.sqrt((centred ** 2).sum(axis=1) / sizes[:, None]) if sizes.size else np.zeros((0, n_features))
-
-    variances, axes, retries = _principal_axes(centred, sizes, n_features) if sizes.size else (
-        np.zeros((0, 1)), np.zeros((0, n_features, 1)), np.zeros(0, dtype=np.int64))
-    floor = min_std[cluster_set][:, None]
-    pca_std = np.sqrt(variances)
-    top = pca_std.max(axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        pca_std = pca_std * (top - floor) / top + floor
-    implicit = n_features - pca_std.shape[1]                              # axes of zero variance left implicit
-    cluster_log_det = -np.log(pca_std).sum(axis=1) - implicit * np.log(min_std[cluster_set])
-    whitened = np.zeros((n_sets, n, pca_std.shape[1]))
-    whitened[cluster_set[:, None].repeat(width, 1)[real], order[real]] = (
-        np.matmul(centred, axes) / pca_std[:, None, :])[real]
+    # clusters grouped by size, each decomposed on exactly its own rows (no padding: batch-independent numbers)
+    stds = np.zeros((sizes.size, n_features))
+    cluster_log_det = np.zeros(sizes.size)
+    retries = np.zeros(sizes.size, dtype=np.int64)
+    groups = []
+    for size in np.unique(sizes):
+        chosen = np.flatnonzero(sizes == size)
+        members = np.argsort(cluster_of[cluster_set[chosen]] != chosen[:, None], axis=1, kind="stable")[:, :size]
+        block = points[cluster_set[chosen][:, None], members]                          # (k, s, D)
+        means = block.mean(axis=1)
+        centred = block - means[:, None, :]
+        stds[chosen] = np.sqrt((centred ** 2).mean(axis=1))
+        variances, axes, retries[chosen] = _principal_axes(centred, sizes[chosen], n_features)
+        floor = min_std[cluster_set[chosen]]
+        pca_std = np.sqrt(variances)
+        top = pca_std.max(axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pca_std = pca_std * (top - floor[:, None]) / top + floor[:, None]
+        implicit = n_features - pca_std.shape[1]                          # axes of zero variance left implicit
+        cluster_log_det[chosen] = -np.log(pca_std).sum(axis=1) - implicit * np.log(floor)
+        groups.append(ClusterGroup(sets=cluster_set[chosen], members=members, means=means, axes=axes,
+                                   inverse_std=1.0 / pca_std, null_inverse_std=1.0 / floor,
+                                   whitened=np.matmul(centred, axes) / pca_std[:, None, :]))
 
     n_clusters = np.bincount(cluster_set, minlength=n_sets)
     mean_std = np.zeros((n_sets, n_features))
@@ -217,7 +227,5 @@ def fit_mixture(points: np.ndarray, labels: np.ndarray, min_std: float | np.ndar
               - (0.5 * n_features * np.log(2 * np.pi) + n_features * np.log(bandwidth)))
     pca_retries = np.zeros(n_sets, dtype=np.int64)
     np.add.at(pca_retries, cluster_set, retries)
-    return Mixture(cluster_of=cluster_of, cluster_set=cluster_set, means=means, axes=axes,
-                   inverse_std=1.0 / pca_std, null_inverse_std=1.0 / min_std[cluster_set], whitened=whitened,
-                   noise_scale=1.0 / noise_std, noise_whitened=points * (1.0 / noise_std)[:, None, :], offset=offset,
+    return Mixture(cluster_of=cluster_of, groups=tuple(groups), noise_scale=1.0 / noise_std, noise_whitened=points * (1.0 / noise_std)[:, None, :], offset=offset,
                    inverse_bandwidth=1.0 / bandwidth, pca_retries=pca_retries)
