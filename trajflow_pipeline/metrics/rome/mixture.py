@@ -157,8 +157,7 @@ def _decompose(centred: np.ndarray, repeats: np.ndarray, rows: np.ndarray,
 def _jittered_axes(members: np.ndarray, n_features: int) -> tuple[np.ndarray, np.ndarray, int]:
     """(variances, axes, retries) of one cluster's centred points by ROME's fallback: its tiled rows decomposed,
     re-run with jitter 10^(a/2 - 6) on the first D rows' diagonal before attempt a + 1 while the SVD fails."""
-    n_points = members.shape[0]
-    data = np.tile(members, (-(-n_features // n_points), 1)) if n_points < n_features else members.copy()
+    data = repeated_rows(members, n_features)
     for attempt in range(PCA_ATTEMPTS + 1):
         try:
             _, singular, vt = np.linalg.svd(data - data.mean(axis=0), full_matrices=False)
@@ -166,8 +165,20 @@ def _jittered_axes(members: np.ndarray, n_features: int) -> tuple[np.ndarray, np
         except np.linalg.LinAlgError:
             if attempt == PCA_ATTEMPTS:
                 raise
-            data[:n_features] += np.eye(n_features) * 10 ** (0.5 * attempt - 6)
+            add_jitter(data, attempt)
     raise AssertionError("unreachable")
+
+
+def repeated_rows(members: np.ndarray, n_features: int) -> np.ndarray:
+    """A cluster's rows (n, D) as ROME decomposes them: repeated until there are at least D of them (a copy)."""
+    n_points = members.shape[0]
+    return np.tile(members, (-(-n_features // n_points), 1)) if n_points < n_features else members.copy()
+
+
+def add_jitter(data: np.ndarray, attempt: int) -> None:
+    """ROME's jitter after failed PCA attempt `attempt`: 10^(attempt/2 - 6) on the diagonal of the first D rows."""
+    n_features = data.shape[1]
+    data[:n_features] += np.eye(n_features) * 10 ** (0.5 * attempt - 6)
 
 
 def fit_mixture(points: np.ndarray, labels: np.ndarray, min_std: float | np.ndarray) -> Mixture:

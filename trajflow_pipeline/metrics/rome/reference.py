@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import logsumexp
 
-#: ROME re-runs a cluster's PCA with added jitter before this attempt, which runs unguarded
-PCA_ATTEMPTS = 10
+from trajflow_pipeline.metrics.rome.mixture import PCA_ATTEMPTS, add_jitter, repeated_rows
+
 
 
 class ReferenceDensity:
@@ -55,8 +55,7 @@ class ReferenceDensity:
         """Cluster i's rotation to principal axes scaled by ROME's floored stds (stored; also returned)."""
         from sklearn.decomposition import PCA
 
-        n_points, n_features = centred.shape
-        data = np.tile(centred, (int(np.ceil(n_features / n_points)), 1)) if n_points < n_features else centred.copy()
+        data = repeated_rows(centred, centred.shape[1])
         for attempt in range(PCA_ATTEMPTS + 1):
             try:
                 pca = PCA(random_state=attempt).fit(data)
@@ -64,7 +63,7 @@ class ReferenceDensity:
             except Exception:  # noqa: BLE001 - ROME retries whatever the PCA raised, with jitter
                 if attempt == PCA_ATTEMPTS:
                     raise
-                data[:n_features] += np.eye(n_features) * 10 ** (0.5 * attempt - 6)
+                add_jitter(data, attempt)
                 self.pca_retries += 1
         pca_std = np.sqrt(pca.explained_variance_)
         self.transforms[i] = pca.components_.T
