@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from trajflow_pipeline.metrics.rome.candidates import candidate_clusterings
-from trajflow_pipeline.metrics.rome.mixture import Mixture, fit_mixture
 from trajflow_pipeline.metrics.rome.distances import distance_matrices
+from trajflow_pipeline.metrics.rome.mixture import Mixture, fit_mixture
 from trajflow_pipeline.metrics.rome.optics import optics_graph
 from trajflow_pipeline.metrics.rome.selection import best_clustering
 
