@@ -11,7 +11,7 @@ import pytest
 
 from trajflow_pipeline.data import list_folds, load_problems, select_samples
 from trajflow_pipeline.errors import DataError, UsageError
-from trajflow_pipeline.schemas import open_dataset
+from trajflow_pipeline.schemas import data_mismatch, open_dataset
 from trajflow_pipeline.stages.ingest_eth_ucy import (FOLDS, SEQUENCES, STANDARD_VAL_START_RAW_FRAME,
                                                      discover_sources, ingest_eth_ucy)
 
@@ -101,6 +101,18 @@ def test_flat_folder_gives_the_same_dataset(eth_ucy_raw: Path, eth_ucy_dataset: 
     assert a.tracks().equals(b.tracks())
     assert a.samples().equals(b.samples())
     assert a.scenes().drop("source").equals(b.scenes().drop("source"))
+    # The same data from another folder: another manifest (its lineage names the folder), the same data hash,
+    # so a run trained on one copy evaluates and resumes on the other; fingerprints from before the data hash
+    # compare whole manifests.
+    trained, given = a.fingerprint(), b.fingerprint()
+    assert trained["manifest_sha256"] != given["manifest_sha256"]
+    assert trained["data_sha256"] == given["data_sha256"]
+    assert data_mismatch(trained, given) is None
+    legacy = {key: value for key, value in trained.items() if key != "data_sha256"}
+    assert data_mismatch(legacy, given) == (f"manifest_sha256: run has {trained['manifest_sha256']!r}, "
+                                            f"data has {given['manifest_sha256']!r}")
+    assert data_mismatch(legacy, trained) is None
+    assert data_mismatch({**trained, "dataset": "rounD"}, given) == "dataset: run has 'rounD', data has 'eth_ucy'"
 
 
 def test_problems_hold_the_raw_positions(eth_ucy_raw: Path, eth_ucy_dataset: Path) -> None:

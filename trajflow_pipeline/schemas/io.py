@@ -34,6 +34,9 @@ from .validate import validate_columns, validate_references, validate_table
 MANIFEST = "dataset.json"
 TRACKS_DIR = "tracks"
 DEFAULT_SHARD_ROWS = 1_000_000
+# Manifest entries that say where inputs lay, not what they held: raw folders in lineages, and the path and
+# whole-manifest hash of a source dataset's fingerprint (which holds its own raw folder).
+LOCATION_KEYS = frozenset({"raw", "path", "manifest_sha256"})
 
 
 @dataclass(frozen=True)
@@ -237,11 +240,36 @@ class Dataset:
         return pl.scan_parquet(shards)
 
     def fingerprint(self) -> dict[str, str]:
-        """Identifies the data a run was trained on: path, manifest metadata and a hash of the manifest."""
+        """Identifies the data a run was trained on: path, manifest metadata, a hash of the manifest and one of
+        the manifest less the places its inputs lay (``data_sha256``: the same for a copy ingested elsewhere)."""
         manifest = (self.path / MANIFEST).read_bytes()
+        placeless = json.dumps(_without_locations(json.loads(manifest)), sort_keys=True).encode()
         return {"path": str(self.path.resolve()), "dataset": self.meta.dataset, "dt": repr(self.meta.dt),
                 "protocol": self.meta.protocol, "schema_version": str(self.meta.schema_version),
-                "written_by": self.meta.version, "manifest_sha256": hashlib.sha256(manifest).hexdigest()}
+                "written_by": self.meta.version, "manifest_sha256": hashlib.sha256(manifest).hexdigest(),
+                "data_sha256": hashlib.sha256(placeless).hexdigest()}
+
+
+def _without_locations(value: Any) -> Any:
+    """A manifest less every :data:`LOCATION_KEYS` entry, at any depth (lineages nest source fingerprints)."""
+    if isinstance(value, dict):
+        return {key: _without_locations(item) for key, item in value.items() if key not in LOCATION_KEYS}
+    if isinstance(value, list):
+        return [_without_locations(item) for item in value]
+    return value
+
+
+def data_mismatch(trained: dict[str, str], given: dict[str, str]) -> str | None:
+    """How the data `given` (a fingerprint) differs from the data a run recorded as `trained`, or None.
+
+    Compares the dataset name and ``data_sha256``, so the same raw files ingested in another folder match;
+    fingerprints recorded before ``data_sha256`` existed compare the whole manifest's hash.
+    """
+    digest = "data_sha256" if "data_sha256" in trained and "data_sha256" in given else "manifest_sha256"
+    for key in ("dataset", digest):
+        if key in trained and trained[key] != given.get(key):
+            return f"{key}: run has {trained[key]!r}, data has {given.get(key)!r}"
+    return None
 
 
 def open_dataset(path: str | Path) -> Dataset:

@@ -69,7 +69,7 @@ from ..metrics.compute import SCHEMA, metric_rows
 from ..metrics.inputs import group_agents, group_minimum
 from ..metrics.rome import KDE_CHOICES, KDE_EXACT
 from ..model.models import CV_EXTENSION, TrajectoryModel
-from ..schemas import open_dataset
+from ..schemas import data_mismatch, open_dataset
 from ..util.atomic import atomic_directory
 from ..util.claim import claim
 from ..util.progress import console, make_progress
@@ -377,14 +377,10 @@ def _long_aggregates(table: pl.DataFrame, horizon: np.ndarray, joint_id: np.ndar
 
 def _check_fingerprint(run: RunInfo, given: dict[str, str], force: bool) -> None:
     """Refuse data other than the run was trained on (other dataset or other manifest) unless forced."""
-    trained = run.fingerprint
-    if force or not trained:
-        return
-    for key in ("dataset", "manifest_sha256"):
-        if trained.get(key) != given.get(key):
-            raise TrajflowError(
-                f"{given.get('path')}: data does not match the run's training data ({key}: run has "
-                f"{trained.get(key)!r}, data has {given.get(key)!r}); pass --force to evaluate anyway")
+    mismatch = None if force else data_mismatch(run.fingerprint, given)
+    if mismatch:
+        raise TrajflowError(f"{given.get('path')}: data does not match the run's training data ({mismatch}); "
+                            "pass --force to evaluate anyway")
 
 
 def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: EvalOptions | None = None,

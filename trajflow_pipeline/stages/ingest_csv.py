@@ -232,7 +232,7 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
         for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):
             writer.add_tracks(scene_tracks)
-        writer.finish(scenes, samples, lineage={"source": str(path.resolve()), "columns": vars(columns),
+        writer.finish(scenes, samples, lineage={"raw": str(path.resolve()), "columns": vars(columns),
                                                 "n_past": n_past, "n_future": n_future, "split_col": split_col,
                                                 "folds": None if split_col else folds,
                                                 "val_fraction": val_fraction})

@@ -74,6 +74,7 @@ from ..model.checkpoint import load_training_state, save_model, save_training_st
 from ..model.config import MODEL_NAMES, DataSpec, RunConfig, load_config
 from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
+from ..schemas import data_mismatch
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import console, make_progress
 from ..util.provenance import code_revision, machines_after, revisions_after
@@ -386,11 +387,9 @@ def _check_same_data(run_dir: Path, data: _Data, resume: bool) -> None:
     """On resume, refuse data other than the run started on (other dataset, or its manifest changed)."""
     if not resume:
         return
-    trained = _run_info(run_dir).get("fingerprint", {})
-    for key in ("dataset", "manifest_sha256"):
-        if key in trained and trained.get(key) != data.fingerprint.get(key):
-            raise UsageError(f"{run_dir} was trained on other data ({key}: {trained.get(key)!r} vs "
-                             f"{data.fingerprint.get(key)!r})")
+    mismatch = data_mismatch(_run_info(run_dir).get("fingerprint", {}), data.fingerprint)
+    if mismatch:
+        raise UsageError(f"{run_dir} was trained on other data ({mismatch})")
 
 
 # ------------------------------------------------------------------------------------------------------ distributed
