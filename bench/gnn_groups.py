@@ -1,27 +1,63 @@
-"""Flow training step on real ETH/UCY batches, with the social GNN run on size-ordered groups of problems.
+"""TrajFlow's flow-stage training step on real ETH/UCY batches (crowded, uneven scenes), and one whole flow epoch.
 
-    python bench/gnn_groups.py [--data data/eth_ucy] [--fold eth] [--batches 10] [--rounds 3] [--groups 128 8]
+    python bench/gnn_groups.py [--data data/eth_ucy] [--fold eth] [--batches 10] [--repeats 3]
+    python bench/gnn_groups.py --against ../release [--rounds 3] [--epoch]
 
-ETH/UCY scenes are crowded and uneven (fold eth's training problems have 34 graph nodes on average and up to 75),
-so the GNN's per-edge work dominates a TrajFlow flow step on a CPU. `SocialGNN.GROUP_SIZE` problems are processed
-at a time, in order of size; a group size of at least the batch size is one pass over the batch, as before.
-For each group size the script times the forward and backward pass of the flow-stage loss on the same
-`--batches` batches of 128 training problems (one torch thread), `--rounds` times in alternation (this machine is
-shared and noisy), and prints the best time per step, in CPU seconds of this process, and its ratio to the first
-group size. The dataset is ingested with `trajflow ingest eth-ucy` first.
+Fold eth's training problems have 34 graph nodes on average and up to 75, so the social GNN's per-edge work and
+the node GRUs dominate a step on a CPU. The script times the forward and backward pass of the flow-stage loss on
+the same `--batches` shuffled batches of 128 training problems with one torch thread and prints the best time
+per step over `--repeats` rounds, in CPU seconds of this process (this machine is shared and noisy). With
+``--epoch`` it also trains one whole flow epoch of the fold (every training problem once, batch 128, AdamW, two
+threads) and prints its wall time. With ``--against TREE`` the same figures are measured for the package in TREE
+(an earlier release's `git worktree`) in alternating subprocess rounds and printed side by side
+(bench/side_by_side.py). The dataset is ingested with `trajflow ingest eth-ucy` first.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from pathlib import Path
 
 import torch
 
 from trajflow_pipeline.model import ModelConfig, build_model
 from trajflow_pipeline.model.config import RunConfig
-from trajflow_pipeline.model.encoders import SocialGNN
-from trajflow_pipeline.stages.train import _load_data
+from trajflow_pipeline.stages.train import _adamw, _load_data
+
+
+def step_seconds(data, model, batches: int, repeats: int) -> float:
+    """Best CPU seconds per flow-stage forward + backward over `repeats` rounds of the same batches (1 thread)."""
+    torch.set_num_threads(1)
+    order = torch.randperm(len(data.train), generator=torch.Generator().manual_seed(0))
+    chosen = [data.train.index(order[i * 128:(i + 1) * 128]) for i in range(batches)]
+    model.stage_loss("flow", chosen[0]).backward()
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.process_time()
+        for batch in chosen:
+            model.stage_loss("flow", batch).backward()
+        best = min(best, (time.process_time() - start) / len(chosen))
+    return best
+
+
+def epoch_seconds(data, model) -> float:
+    """Wall seconds of one flow epoch over the fold's training problems (batch 128, AdamW, 2 threads)."""
+    torch.set_num_threads(2)
+    params = model.stage_parameters("flow")
+    keep = {id(p) for p in params}
+    for p in model.parameters():
+        p.requires_grad_(id(p) in keep)
+    optimizer = _adamw(params, 1e-4, 1e-5)
+    order = torch.randperm(len(data.train), generator=torch.Generator().manual_seed(1))
+    start = time.perf_counter()
+    for first in range(0, len(order), 128):
+        loss = model.stage_loss("flow", data.train.index(order[first:first + 128]))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return time.perf_counter() - start
 
 
 def main() -> None:
@@ -29,28 +65,32 @@ def main() -> None:
     parser.add_argument("--data", default="data/eth_ucy")
     parser.add_argument("--fold", default="eth")
     parser.add_argument("--batches", type=int, default=10)
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--groups", type=int, nargs="+", default=[128, 16, 8, 4])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--epoch", action="store_true", help="also time one whole flow epoch (2 threads)")
+    parser.add_argument("--against", type=Path, help="also measure the package in this tree, alternating")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --against")
+    parser.add_argument("--figures-json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    if args.against is not None:
+        from side_by_side import report_side_by_side
+
+        passed = ["--data", args.data, "--fold", args.fold, "--batches", str(args.batches), "--repeats",
+                  str(args.repeats), *(["--epoch"] if args.epoch else [])]
+        report_side_by_side(Path(__file__), passed, args.against, args.rounds)
+        return
     data = _load_data(args.data, args.fold, RunConfig())
     torch.manual_seed(0)
     model = build_model(ModelConfig(name="trajflow"), data.spec).train()
-    order = torch.randperm(len(data.train), generator=torch.Generator().manual_seed(0))
-    batches = [data.train.index(order[i * 128:(i + 1) * 128]) for i in range(args.batches)]
-    best = {size: float("inf") for size in args.groups}
-    for _ in range(args.rounds):
-        for size in args.groups:
-            SocialGNN.GROUP_SIZE = size
-            start = time.process_time()
-            for batch in batches:
-                model.stage_loss("flow", batch).backward()
-            best[size] = min(best[size], (time.process_time() - start) / len(batches))
-    baseline = best[args.groups[0]]
-    print(f"fold {args.fold}: flow step (forward + backward, batch 128, 1 thread), best of {args.rounds} rounds")
-    for size, seconds in best.items():
-        print(f"  group size {size:4d}: {seconds * 1000:6.1f} ms per step  ({baseline / seconds:.2f}x group "
-              f"size {args.groups[0]})")
+    found = {f"fold {args.fold} flow step, batch 128, 1 thread, CPU s": [step_seconds(data, model, args.batches,
+                                                                                        args.repeats), "time"]}
+    if args.epoch:
+        found[f"fold {args.fold} flow epoch ({len(data.train)} problems), 2 threads, wall s"] = [
+            epoch_seconds(data, model), "time"]
+    if args.figures_json:
+        print(json.dumps(found))
+        return
+    for name, (value, _) in found.items():
+        print(f"{name}: {value:.3f}")
 
 
 if __name__ == "__main__":

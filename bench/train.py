@@ -3,6 +3,7 @@
     python bench/train.py                      # CPU with 2 threads, and CUDA when available
     python bench/train.py --threads 1 --repeats 5 --models trajflow
     python bench/train.py --no-cpu             # CUDA only
+    python bench/train.py --models trajflow --against ../release   # against an earlier release's worktree
 
 Training: samples/s of one optimisation step per stage (loss, backward, finiteness check, fused AdamW) at batch
 128 on ETH/UCY-shaped problems (8 past, 12 future steps) with up to 0, 8 and 24 neighbours (80% of them present).
@@ -11,14 +12,18 @@ log-likelihood of every sample.
 Each figure is the best of ``--repeats`` timed rounds, so that noise from other processes inflates it least; the
 load average printed with the figures says how busy the machine was. Beside wall-clock rates the bench prints
 rates per CPU-second of this process: with one thread that approximates an idle machine's wall time.
+With ``--against TREE`` the figures of this checkout and of the package in TREE are measured in alternating
+subprocess rounds (``--rounds``) and printed side by side with their ratio (bench/side_by_side.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 
@@ -85,6 +90,19 @@ def sampling_latency(name: str, device: torch.device, repeats: int,
         assert trajectories.shape == (1000, 100, 12, 2) and log_lik.shape == (1000, 100)
 
     return best_time(draw, repeats, 1, sync)
+
+
+def figures(device: torch.device, models: list[str], repeats: int) -> dict[str, list]:
+    """The figures of :func:`run` as name -> [value, "rate" | "time"] (wall clock), for side-by-side runs."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    out: dict[str, list] = {}
+    for name in models:
+        for stage in [s for s in build_model(ModelConfig(name=name), SPEC).stages if s != "fit"]:
+            for neighbours in (0, 8, 24):
+                wall, _ = training_rate(name, stage, neighbours, device, repeats, sync)
+                out[f"{name} {stage} {neighbours} neighbours, samples/s"] = [wall, "rate"]
+        out[f"{name} sampling 100 x 1000 agents, s"] = [sampling_latency(name, device, repeats, sync)[0], "time"]
+    return out
 
 
 def run(device: torch.device, models: list[str], repeats: int) -> None:

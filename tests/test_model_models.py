@@ -11,7 +11,7 @@ import torch
 from trajflow_pipeline.model.autoencoder import TrajectoryAutoencoder
 from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
-from trajflow_pipeline.model.encoders import SocialGNN, compact_neighbours, social_nodes
+from trajflow_pipeline.model.encoders import SocialGNN, compact_neighbours, size_groups, social_nodes
 from trajflow_pipeline.model.models import FloMo, build_model, extend_constant_velocity
 from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
@@ -255,8 +255,9 @@ def test_gnn_groups_problems_by_size_without_changing_the_result(monkeypatch: py
     valid = torch.ones(batch, n, 8, dtype=torch.bool) & mask[..., None]
     types = torch.randint(0, 5, (batch, n))
 
-    def encode(group_size: int, rows: slice | None = None) -> tuple[torch.Tensor, ...]:
-        monkeypatch.setattr(SocialGNN, "GROUP_SIZE", group_size)
+    def encode(group_edges: int, rows: slice | None = None) -> tuple[torch.Tensor, ...]:
+        monkeypatch.setattr(SocialGNN, "GROUP_EDGES", group_edges)
+        monkeypatch.setattr(SocialGNN, "GROUP_PADDING", group_edges)
         leaf = past.clone().requires_grad_(True)
         gnn.zero_grad()
         chosen = slice(None) if rows is None else rows
@@ -264,14 +265,27 @@ def test_gnn_groups_problems_by_size_without_changing_the_result(monkeypatch: py
         (out ** 2).sum().backward()
         return out.detach(), leaf.grad, gnn.msg_edge.weight.grad.clone()
 
-    grouped = encode(4)
-    alone = [encode(4, slice(i, i + 1)) for i in range(batch)]
+    grouped = encode(4 * n * n)                                                  # groups of 4 or fewer
+    alone = [encode(4 * n * n, slice(i, i + 1)) for i in range(batch)]
     assert torch.allclose(grouped[0], torch.cat([a[0] for a in alone]), rtol=1e-10, atol=1e-12)
     assert torch.allclose(grouped[1], sum(a[1] for a in alone), rtol=1e-10, atol=1e-12)
     assert torch.allclose(grouped[2], sum(a[2] for a in alone), rtol=1e-10, atol=1e-12)
-    whole = encode(batch)                                                        # one group: no reordering
+    whole = encode(batch * n * n)                                                # one group
     for value, expected in zip(whole, grouped):
         assert torch.allclose(value, expected, rtol=1e-10, atol=1e-12)
+
+
+def test_size_groups_keep_padding_and_group_edges_in_bounds() -> None:
+    extents = [1, 1, 2, 2, 3, 5, 5, 5, 9, 9]
+    assert size_groups(extents, 10**6, 10**6) == [(0, 10)]
+    assert size_groups(extents, 1, 10**6) == [(i, i + 1) for i in range(10)]    # one problem per group at least
+    bounds = size_groups(extents, 100, 20)
+    assert bounds[0][0] == 0 and bounds[-1][1] == 10
+    assert all(stop == next_start for (_, stop), (next_start, _) in zip(bounds, bounds[1:]))
+    for start, stop in bounds:
+        members = extents[start:stop]
+        assert len(members) == 1 or len(members) * members[-1] ** 2 <= 100
+    assert size_groups([], 100, 20) == [(0, 0)]
 
 
 @pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])

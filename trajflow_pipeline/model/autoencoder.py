@@ -12,6 +12,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from .gru import gru_outputs
 from .normalize import displacements_to_positions
 
 
@@ -33,8 +34,7 @@ class TrajectoryAutoencoder(nn.Module):
 
     def encode(self, displacements: Tensor) -> Tensor:
         """Scaled displacements (B, T, 2) -> latent (B, m), read from the last step's top GRU output."""
-        out, _ = self.enc_gru(F.relu(self.enc_embed(displacements)))
-        return self.enc_out(out[:, -1])
+        return self.enc_out(gru_outputs(self.enc_gru, F.relu(self.enc_embed(displacements)))[:, -1])
 
     def decode(self, latent: Tensor, steps: int) -> Tensor:
         """Latents (..., m) -> scaled displacements (..., steps, 2), for any `steps` >= 1."""

@@ -68,52 +68,53 @@ class RationalQuadraticSpline(Transform):
         self.bins = bins
 
     def _locate(self, value: Tensor, knots: Tensor) -> tuple[Tensor, ...]:
-        """Bin of each value among `knots` and the bin's corner values; `inside` marks values within (-B, B]."""
+        """Bin of each value among `knots` and the bin's corner values; `outside` marks values not in (-B, B].
+
+        The first bin's lower knot (-B) and the end derivatives (1) are filled in after the lookups, with masked
+        fills of scalars: cheaper than padding the knot tensors, which for sampling are large."""
         bins = self.bins
         k = (knots[..., :bins - 1] < value[..., None]).sum(-1, keepdim=True)                 # bin in [0, K-1]
-        below = (k - 1).clamp(min=0)
-        edges = torch.cat((below, k), dim=-1)
-        x0, x1 = self.horizontal.gather(-1, edges).unbind(-1)
-        y0, y1 = self.vertical.gather(-1, edges).unbind(-1)
-        raw = self.raw_derivatives.gather(-1, torch.cat((below.clamp(max=bins - 2), k.clamp(max=bins - 2)), dim=-1))
+        below = (k - 1).clamp_(min=0)
+        x0, x1 = self.horizontal.gather(-1, torch.cat((below, k), dim=-1)).unbind(-1)
+        y0, y1 = self.vertical.gather(-1, torch.cat((below, k), dim=-1)).unbind(-1)
+        raw = self.raw_derivatives.gather(-1, torch.cat((below, k.clamp(max=bins - 2)), dim=-1))
         d0, d1 = (raw / raw.abs().mul_(1 / self.limit).add_(1)).exp().unbind(-1)   # zuko: u / (1 + |u / log slope|)
         first, last = (k == 0).squeeze(-1), (k == bins - 1).squeeze(-1)
-        x0 = torch.where(first, -self.bound, x0)
-        y0 = torch.where(first, -self.bound, y0)
-        d0 = torch.where(first, 1.0, d0)
-        d1 = torch.where(last, 1.0, d1)
-        inside = (value > -self.bound) & (value <= self.bound)
-        return inside, x0, x1, y0, y1, d0, d1
+        x0, y0 = x0.masked_fill(first, -self.bound), y0.masked_fill(first, -self.bound)
+        d0, d1 = d0.masked_fill(first, 1.0), d1.masked_fill(last, 1.0)
+        outside = (value <= -self.bound) | (value > self.bound)
+        return outside, x0, x1, y0, y1, d0, d1
 
     @staticmethod
-    def _log_jacobian(z: Tensor, s: Tensor, d0: Tensor, d1: Tensor) -> Tensor:
-        zz = z * (1 - z)
+    def _log_jacobian(z: Tensor, zz: Tensor, s: Tensor, d0: Tensor, d1: Tensor) -> Tensor:
+        """log dy/dx of the bin's rational quadratic at z, with zz = z (1 - z)."""
         numerator = s * s * (2 * s * zz + d0 * (1 - z) ** 2 + d1 * z * z)
         return numerator.log() - 2 * (s + (d0 + d1 - 2 * s) * zz).log()
 
     def call_and_ladj(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        inside, x0, x1, y0, y1, d0, d1 = self._locate(x, self.horizontal)
-        s = (y1 - y0) / (x1 - x0)
-        z = torch.where(inside, (x - x0) / (x1 - x0), torch.zeros_like(x))
+        outside, x0, x1, y0, y1, d0, d1 = self._locate(x, self.horizontal)
+        dx, dy = x1 - x0, y1 - y0
+        s = dy / dx
+        z = ((x - x0) / dx).masked_fill(outside, 0.0)
         zz = z * (1 - z)
-        y = y0 + (y1 - y0) * (s * z * z + d0 * zz) / (s + (d0 + d1 - 2 * s) * zz)
-        ladj = torch.where(inside, self._log_jacobian(z, s, d0, d1), torch.zeros_like(x))
-        return torch.where(inside, y, x), ladj.sum(-1)
+        y = y0 + dy * (s * z * z + d0 * zz) / (s + (d0 + d1 - 2 * s) * zz)
+        ladj = self._log_jacobian(z, zz, s, d0, d1).masked_fill(outside, 0.0)
+        return torch.where(outside, x, y), ladj.sum(-1)
 
     def inverse_and_ladj(self, y: Tensor) -> tuple[Tensor, Tensor]:
         """x = f^-1(y) and log |det J_{f^-1}(y)| (summed over the last dimension)."""
-        inside, x0, x1, y0, y1, d0, d1 = self._locate(y, self.vertical)
-        dy = y1 - y0
-        s = dy / (x1 - x0)
-        rel = torch.where(inside, y - y0, torch.zeros_like(y))
+        outside, x0, x1, y0, y1, d0, d1 = self._locate(y, self.vertical)
+        dx, dy = x1 - x0, y1 - y0
+        s = dy / dx
+        rel = (y - y0).masked_fill(outside, 0.0)
         t = d0 + d1 - 2 * s
         a = dy * (s - d0) + rel * t
         b = dy * d0 - rel * t
         c = -s * rel
         z = 2 * c / (-b - (b * b - 4 * a * c).clamp(min=0).sqrt())
-        x = x0 + z * (x1 - x0)
-        ladj = torch.where(inside, -self._log_jacobian(z, s, d0, d1), torch.zeros_like(y))
-        return torch.where(inside, x, y), ladj.sum(-1)
+        x = x0 + z * dx
+        ladj = self._log_jacobian(z, z * (1 - z), s, d0, d1).neg_().masked_fill(outside, 0.0)
+        return torch.where(outside, y, x), ladj.sum(-1)
 
     def _call(self, x: Tensor) -> Tensor:
         return self.call_and_ladj(x)[0]
