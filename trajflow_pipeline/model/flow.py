@@ -289,6 +289,10 @@ class ConditionalSplineFlow(nn.Module):
         """n samples per context row and their log-densities: (n, B, D) and (n, B)."""
         z = torch.randn((n, context.shape[0], self.features), generator=generator, device=context.device,
                         dtype=context.dtype)
+        return self.from_noise(z, context)
+
+    def from_noise(self, z: Tensor, context: Tensor) -> tuple[Tensor, Tensor]:
+        """The samples x (n, B, D) that base draws z (n, B, D) map to, and their log-densities (n, B)."""
         u, ladj = self.transform(context).inv.call_and_ladj(z)
         return self._out(u), standard_normal_log_prob(z) - ladj + self._log_scale()
 

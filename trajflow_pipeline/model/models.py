@@ -232,15 +232,29 @@ class FlowModel(TrajectoryModel):
         context = self.context(batch, norm.frame, norm.local_past)
         return self.flow.log_prob(self.targets(norm), context)
 
+    #: draws x problems inverted and decoded at a time when sampling: the spline's and the decoder's temporaries
+    #: of a chunk stay near the cache (measured on the 2-core AMD EPYC, 100 draws for 1000 agents: the flow's
+    #: inverse 3.2-3.6 s in one piece, 1.8-2.1 s in chunks of 10,000 rows). The noise is drawn first, so
+    #: chunks change only float rounding (bit for bit there; tiny chunks' matrix products may round otherwise).
+    SAMPLE_CHUNK_ROWS = 10_000
+
     @torch.no_grad()
     def sample(self, batch: SceneBatch, n: int, steps: int | None = None,
                generator: torch.Generator | None = None) -> Samples:
         steps = _check_steps(steps, self.spec.n_future)
         norm = self.normalize(batch)
         context = self.context(batch, norm.frame, norm.local_past)
-        x, log_lik = self.flow.sample(context, n, generator)                      # (n, B, D), (n, B)
-        displacements = self.decode(x, steps).transpose(0, 1)                     # (B, n, steps, 2)
-        return Samples(denormalize_future(displacements, norm.frame, self.config.alpha), log_lik.transpose(0, 1))
+        z = torch.randn((n, len(batch), self.flow.features), generator=generator, device=context.device,
+                        dtype=context.dtype)                                      # all draws first: one stream
+        per_chunk = max(1, self.SAMPLE_CHUNK_ROWS // max(n, 1))
+        displacements, log_lik = [], []
+        for first in range(0, len(batch), per_chunk):
+            chunk = slice(first, first + per_chunk)
+            x, chunk_log_lik = self.flow.from_noise(z[:, chunk], context[chunk])  # (n, b, D), (n, b)
+            displacements.append(self.decode(x, steps).transpose(0, 1))           # (b, n, steps, 2)
+            log_lik.append(chunk_log_lik.transpose(0, 1))
+        trajectories = denormalize_future(torch.cat(displacements), norm.frame, self.config.alpha)
+        return Samples(trajectories, torch.cat(log_lik))
 
 
 class TrajFlow(FlowModel):
