@@ -7,10 +7,10 @@ Fold eth's training problems have 34 graph nodes on average and up to 75, so the
 the node GRUs dominate a step on a CPU. The script times the forward and backward pass of the flow-stage loss on
 the same `--batches` shuffled batches of 128 training problems with one torch thread and prints the best time
 per step over `--repeats` rounds, in CPU seconds of this process (this machine is shared and noisy). With
-``--epoch`` it also trains one whole flow epoch of the fold (every training problem once, batch 128, AdamW, two
-threads) and prints its wall time. With ``--against TREE`` the same figures are measured for the package in TREE
-(an earlier release's `git worktree`) in alternating subprocess rounds and printed side by side
-(bench/side_by_side.py). The dataset is ingested with `trajflow ingest eth-ucy` first.
+``--epoch`` it also trains one whole flow epoch of the fold (every training problem once, batch 128, AdamW,
+``--epoch-threads`` torch threads, default 2) and prints its wall time. With ``--against TREE`` the same figures
+are measured for the package in TREE (an earlier release's `git worktree`) in alternating subprocess rounds and
+printed side by side (bench/side_by_side.py). The dataset is ingested with `trajflow ingest eth-ucy` first.
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ def step_seconds(data, model, batches: int, repeats: int) -> float:
     return best
 
 
-def epoch_seconds(data, model) -> float:
-    """Wall seconds of one flow epoch over the fold's training problems (batch 128, AdamW, 2 threads)."""
-    torch.set_num_threads(2)
+def epoch_seconds(data, model, threads: int) -> float:
+    """Wall seconds of one flow epoch over the fold's training problems (batch 128, AdamW, `threads` threads)."""
+    torch.set_num_threads(threads)
     params = model.stage_parameters("flow")
     keep = {id(p) for p in params}
     for p in model.parameters():
@@ -66,7 +66,8 @@ def main() -> None:
     parser.add_argument("--fold", default="eth")
     parser.add_argument("--batches", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--epoch", action="store_true", help="also time one whole flow epoch (2 threads)")
+    parser.add_argument("--epoch", action="store_true", help="also time one whole flow epoch")
+    parser.add_argument("--epoch-threads", type=int, default=2, help="torch threads for --epoch (default 2)")
     parser.add_argument("--against", type=Path, help="also measure the package in this tree, alternating")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --against")
     parser.add_argument("--figures-json", action="store_true", help=argparse.SUPPRESS)
@@ -74,8 +75,9 @@ def main() -> None:
     if args.against is not None:
         from side_by_side import report_side_by_side
 
+        epoch = ["--epoch", "--epoch-threads", str(args.epoch_threads)] if args.epoch else []
         passed = ["--data", args.data, "--fold", args.fold, "--batches", str(args.batches), "--repeats",
-                  str(args.repeats), *(["--epoch"] if args.epoch else [])]
+                  str(args.repeats), *epoch]
         report_side_by_side(Path(__file__), passed, args.against, args.rounds)
         return
     data = _load_data(args.data, args.fold, RunConfig())
@@ -84,8 +86,8 @@ def main() -> None:
     found = {f"fold {args.fold} flow step, batch 128, 1 thread, CPU s": [step_seconds(data, model, args.batches,
                                                                                         args.repeats), "time"]}
     if args.epoch:
-        found[f"fold {args.fold} flow epoch ({len(data.train)} problems), 2 threads, wall s"] = [
-            epoch_seconds(data, model), "time"]
+        found[f"fold {args.fold} flow epoch ({len(data.train)} problems), {args.epoch_threads} threads, wall s"] = [
+            epoch_seconds(data, model, args.epoch_threads), "time"]
     if args.figures_json:
         print(json.dumps(found))
         return

@@ -129,8 +129,22 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["trajflow", "trajflow-no-ae", "flomo", "cv"])
     parser.add_argument("--no-cuda", action="store_true", help="skip the CUDA figures")
     parser.add_argument("--no-cpu", action="store_true", help="skip the CPU figures")
+    parser.add_argument("--against", type=Path, help="also measure the package in this tree (a git worktree), "
+                                                     "alternating, and print the ratios (CPU, first --threads)")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --against")
+    parser.add_argument("--figures-json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.against is not None:
+        from side_by_side import report_side_by_side
+
+        passed = ["--threads", str(args.threads[0]), "--repeats", str(args.repeats), "--models", *args.models]
+        report_side_by_side(Path(__file__), passed, args.against, args.rounds)
+        return
     tune_cpu_allocator()
+    if args.figures_json:
+        torch.set_num_threads(args.threads[0])
+        print(json.dumps(figures(torch.device("cpu"), args.models, args.repeats)))
+        return
     for threads in [] if args.no_cpu else args.threads:
         torch.set_num_threads(threads)
         run(torch.device("cpu"), args.models, args.repeats)
