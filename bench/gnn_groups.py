@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from trajflow_pipeline.model import ModelConfig, build_model
+from trajflow_pipeline.model import ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.config import RunConfig
 from trajflow_pipeline.stages.train import _adamw, _load_data
 
@@ -80,6 +80,7 @@ def main() -> None:
                   str(args.repeats), *epoch]
         report_side_by_side(Path(__file__), passed, args.against, args.rounds)
         return
+    tune_cpu_allocator()  # as `trajflow train` does
     data = _load_data(args.data, args.fold, RunConfig())
     torch.manual_seed(0)
     model = build_model(ModelConfig(name="trajflow"), data.spec).train()
