@@ -113,3 +113,19 @@ def test_ragged_csv_line_and_bad_options(tmp_path: Path) -> None:
         ColumnMap.parse("colour=c")
     result = runner.invoke(app, ["ingest", "csv", str(path), "-o", str(tmp_path / "o"), "--dt", "-1"])
     assert result.exit_code == 2 and "--dt must be positive" in result.output
+
+
+def test_paths_with_glob_characters_are_paths(tmp_path: Path) -> None:
+    """`[`, `]`, `*` and `?` in file and folder names are characters: the file named is read (alone), the dataset
+    folder written and read back; a pattern that names no file is 'not found', not a merge of its matches."""
+    folder = tmp_path / "g[1] *?"
+    folder.mkdir()
+    walkers(frames=40).write_csv(folder / "run[1].csv")
+    walkers(frames=40, seed=1).write_csv(folder / "data1.csv")
+    columns = ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py")
+    out = ingest_csv(folder / "run[1].csv", folder / "ds[2]", dt=0.5, n_past=4, n_future=6, columns=columns)
+    assert open_dataset(out).tracks().height == 2 * 3 * 40
+    result = runner.invoke(app, ["inspect", str(out)])
+    assert result.exit_code == 0, result.output
+    with pytest.raises(DataError, match="input file not found"):
+        ingest_csv(folder / "data*.csv", folder / "merged", dt=0.5, n_past=4, n_future=6, columns=columns)

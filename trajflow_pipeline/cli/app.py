@@ -7,11 +7,10 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from .. import __version__
-from ..util.progress import console
+from ..util.progress import say, stdout
 from .common import Overwrite, Quiet, set_debug, user_errors
 from .forking_cmd import augment_forking_command, augment_scale_rotate_command, ingest_forking_paths_command
 from .nuscenes_cmd import ingest_nuscenes_command
@@ -32,8 +31,6 @@ app.add_typer(ingest_app, name="ingest")
 augment_app = typer.Typer(help="Scaling / rotation augmentation into a new dataset.", no_args_is_help=True)
 app.add_typer(augment_app, name="augment")
 
-#: the main result of a command (tables, paths) goes to stdout; progress and errors go to stderr
-stdout = Console()
 
 OutDir = Annotated[Path, typer.Option("--out", "-o", help="Dataset directory to write (created atomically).")]
 
@@ -62,8 +59,8 @@ def _set_threads(command: str | None, threads: int | None) -> None:
 
         lowered = fit_threads_to_idle_cpus()
         if lowered is not None:
-            console.print(f"[yellow]note:[/] other processes keep CPUs busy: {lowered[1]} torch thread(s) instead "
-                          f"of {lowered[0]} (set them with trajflow --threads N)", highlight=False)
+            say(("note:", "yellow"), f" other processes keep CPUs busy: {lowered[1]} torch thread(s) instead of "
+                f"{lowered[0]} (set them with trajflow --threads N)")
 
 
 @app.callback()
@@ -86,8 +83,8 @@ def _done(out: Path, quiet: bool) -> None:
         from ..stages.inspect import summarize
 
         summary = summarize(out)
-        console.print(f"[green]wrote[/] {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
-                      f"{summary['samples']} samples, {summary['groups']} groups")
+        say(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
+            f"{summary['samples']} samples, {summary['groups']} groups")
 
 
 @ingest_app.command("eth-ucy")

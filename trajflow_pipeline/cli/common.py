@@ -10,10 +10,9 @@ from typing import Annotated
 import polars as pl
 import pyarrow as pa
 import typer
-from rich.markup import escape
 
 from ..errors import TrajflowError
-from ..util.progress import console
+from ..util.progress import say
 
 #: set by the top-level --debug option (or TRAJFLOW_DEBUG=1): show tracebacks instead of one-line errors
 DEBUG = {"enabled": False}
@@ -35,16 +34,16 @@ def user_errors() -> Iterator[None]:
     except TrajflowError as error:
         if DEBUG["enabled"]:
             raise
-        console.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
+        say(("error:", "bold red"), f" {error}")
         raise typer.Exit(error.exit_code) from None
     except (OSError, pl.exceptions.PolarsError, pa.ArrowException) as error:
         # files that exist but cannot be used (a path component that is a file, corrupt Parquet pages, ...)
         if DEBUG["enabled"]:
             raise
         text = f"{error.filename}: {error.strerror}" if isinstance(error, OSError) and error.filename else error
-        console.print(f"[bold red]error:[/] {escape(str(text).splitlines()[0])}", highlight=False, soft_wrap=True)
+        say(("error:", "bold red"), f" {str(text).splitlines()[0]}")
         raise typer.Exit(1) from None
     except KeyboardInterrupt:
-        console.print("[bold red]interrupted[/]: outputs in progress were not moved into place "
-                      "(an interrupted training can be continued with --resume)")
+        say(("interrupted", "bold red"), ": outputs in progress were not moved into place (an interrupted training "
+            "can be continued with --resume)")
         raise typer.Exit(130) from None

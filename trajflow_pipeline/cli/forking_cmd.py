@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import UsageError
-from ..util.progress import console
+from ..util.progress import say
 from .common import Overwrite, Quiet, user_errors
 
 OutDir = Annotated[Path, typer.Option("--out", "-o", help="Dataset directory to write (created atomically).")]
@@ -46,8 +46,8 @@ def _summary(out: Path, quiet: bool) -> None:
     from ..stages.inspect import summarize
 
     summary = summarize(out)
-    console.print(f"[green]wrote[/] {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
-                  f"{summary['samples']} samples, {summary['groups']} groups")
+    say(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
+        f"{summary['samples']} samples, {summary['groups']} groups")
 
 
 def ingest_forking_paths_command(

@@ -13,9 +13,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
+from rich.text import Text
 
-from ..util.progress import console
+from ..util.progress import console, say, styled
 from .common import Overwrite, Quiet, user_errors
 
 
@@ -28,7 +28,7 @@ def _show_ingest_warnings() -> Iterator[None]:
 
     def show(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
         if issubclass(category, NuScenesWarning):
-            console.print(f"[bold yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+            say(("warning:", "bold yellow"), f" {message}")
         else:
             previous(message, category, filename, lineno, file, line)
 
@@ -38,15 +38,15 @@ def _show_ingest_warnings() -> Iterator[None]:
         yield
 
 
-def _summary(out: Path) -> str:
+def _summary(out: Path) -> Text:
     """One line saying what was written (scenes, rows, samples per split, maps)."""
     from ..stages.inspect import summarize
 
     summary = summarize(out)
     splits = ", ".join(f"{row['split']} {row['samples']}" for row in summary["samples_by_fold_and_split"])
     maps = "with maps" if summary["has_map"] else "no maps"
-    return (f"[green]wrote[/] {escape(str(out))}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
-            f"{summary['samples']} samples ({splits}), {summary['groups']} groups, {maps}")
+    return styled(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
+                  f"{summary['samples']} samples ({splits}), {summary['groups']} groups, {maps}")
 
 
 def ingest_nuscenes_command(
@@ -70,4 +70,4 @@ def ingest_nuscenes_command(
             result = ingest_nuscenes(dataroot, out, version=version, all_agents=all_agents, overwrite=overwrite,
                                      quiet=quiet)
         if not quiet:
-            console.print(_summary(result), highlight=False, soft_wrap=True)
+            console.print(_summary(result), soft_wrap=True)

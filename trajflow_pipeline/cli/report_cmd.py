@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from ..util.progress import console
+from ..util.progress import say
 from .common import Quiet, user_errors
 
 
@@ -33,5 +33,4 @@ def report_command(
     with user_errors():
         path = report(runs, out, quiet=quiet, figures=not no_figures, max_examples=examples)
     if not quiet:
-        console.print(f"[green]wrote[/] report {path / 'report.html'} (Markdown: {path / 'report.md'})",
-                      highlight=False)
+        say(("wrote", "green"), f" report {path / 'report.html'} (Markdown: {path / 'report.md'})")

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..util.progress import console
+from ..util.progress import say
 from .common import Overwrite, Quiet, user_errors
 
 
@@ -35,6 +35,6 @@ def ingest_round_command(
         result = ingest_round(raw, out, recordings=recording, geometry=config, overwrite=overwrite, quiet=quiet)
         if not quiet:
             summary = summarize(result)
-            console.print(f"[green]wrote[/] {result}: {summary['scenes']} recordings, {summary['track_rows']} track "
-                          f"rows, {summary['samples']} samples ({summary['samples'] // 2} target/ego pairs), "
-                          f"{len(summary['folds'])} folds, maps: {summary['has_map']}")
+            say(("wrote", "green"), f" {result}: {summary['scenes']} recordings, {summary['track_rows']} track rows, "
+                f"{summary['samples']} samples ({summary['samples'] // 2} target/ego pairs), "
+                f"{len(summary['folds'])} folds, maps: {summary['has_map']}")

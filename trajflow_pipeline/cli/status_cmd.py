@@ -12,11 +12,11 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from ..stages.status import ExperimentStatus, RunStatus, StageProgress
-from ..util.progress import duration_text
+from ..util.progress import duration_text, say, stdout
 from .common import user_errors
 
 #: how each state is shown
@@ -40,7 +40,7 @@ def status_command(
     if as_json:
         typer.echo(json.dumps(status.to_dict(), indent=2, default=str))
         return
-    print_status(status, Console())
+    print_status(status, stdout)
 
 
 def print_status(status: ExperimentStatus, out: Console) -> None:
@@ -52,7 +52,7 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
         table.add_column(column, justify="right")
     for run in status.runs:
         metrics = [run.metrics.get("min_ade"), run.metrics.get("min_fde")]
-        table.add_row(run.name, f"[{_STATE_STYLE.get(run.state, '')}]{run.state}[/]", *_progress_cells(run),
+        table.add_row(run.name, Text(run.state, style=_STATE_STYLE.get(run.state, "")), *_progress_cells(run),
                       duration_text(run.train_seconds) if run.train_seconds else "",
                       "/".join(f"{v:.3f}" for v in metrics if v is not None))
     out.print(table)
@@ -61,13 +61,13 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
     evaluated = sum(run.eval_seconds or 0.0 for run in status.runs)
     summary = ", ".join(f"{count} {state}" for state, count in states.most_common())
     runs = f"{len(status.runs)} run{'' if len(status.runs) == 1 else 's'}"
-    out.print(f"{runs}: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
-              f"evaluation {duration_text(evaluated)}.", highlight=False)
+    say(f"{runs}: {summary}. Time so far, summed over runs: training {duration_text(trained)}, "
+        f"evaluation {duration_text(evaluated)}.", out=out)
     for run in status.runs:
         if run.problem:
-            out.print(f"[red]{run.name}:[/] {escape(run.problem)}", highlight=False)
+            say((f"{run.name}:", "red"), f" {run.problem}", out=out)
     if status.note:
-        out.print(f"[yellow]note:[/] {status.note}", highlight=False)
+        say(("note:", "yellow"), f" {status.note}", out=out)
 
 
 def _progress_cells(run: RunStatus) -> list[str]:

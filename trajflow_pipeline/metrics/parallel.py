@@ -34,7 +34,7 @@ from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.metrics import rome
 from trajflow_pipeline.metrics.rome import DEFAULT_MIN_STD, KDE_CHOICES, KDE_EXACT
 from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
-from trajflow_pipeline.util.progress import console, make_progress
+from trajflow_pipeline.util.progress import make_progress, say
 
 #: most points x points x fits clustered in one batch (bounds a batch's working memory to a few hundred MB)
 BATCH_BUDGET = 1 << 21
@@ -214,8 +214,8 @@ def _saved(store: RomeCache | None, finished: list[Finished], quiet: bool) -> Ro
         store.save(finished)
     except OSError as error:
         if not quiet:
-            console.print(f"[yellow]warning:[/] cannot save ROME fits in {store.directory} ({error}); going on "
-                          "without a cache, so an interruption would start the fits again")
+            say(("warning:", "yellow"), f" cannot save ROME fits in {store.directory} ({error}); going on without a "
+                "cache, so an interruption would start the fits again")
         return None
     return store
 
@@ -261,7 +261,7 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     todo = [index for index, result in enumerate(results) if result is None]
     resumed = n_tasks - len(todo)
     if resumed and not quiet:
-        console.print(f"[dim]{description}: {resumed} of {n_tasks} fits resumed from {store.directory}[/]")
+        say((f"{description}: {resumed} of {n_tasks} fits resumed from {store.directory}", "dim"))
     batches = _batches(tasks, todo, n_workers)
     progress = make_progress(quiet)
     with progress:
@@ -303,5 +303,5 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
         fallbacks.retries += this_call.retries
         fallbacks.resumed += this_call.resumed
     if this_call.fallback_fits and not quiet:
-        console.print(f"[dim]note: {this_call.note()}[/]")
+        say((f"note: {this_call.note()}", "dim"))
     return results  # type: ignore[return-value]

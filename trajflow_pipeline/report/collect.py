@@ -18,6 +18,7 @@ from typing import Any, NamedTuple
 import polars as pl
 
 from ..errors import DataError, TrajflowError
+from ..util import tablefiles
 from .paper import UNBOUNDED_PREFIX, model_label, model_order
 
 EVAL_DIR = "eval"
@@ -250,7 +251,7 @@ def scan_table(path: Path, columns: dict[str, str], optional: dict[str, str] | N
     if not path.is_file():
         raise DataError(f"{what} not found; run `trajflow eval` again", path)
     try:
-        frame = pl.scan_parquet(path)
+        frame = tablefiles.scan_parquet(path)
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable {what} ({error})", path) from None
     return _conform(frame, path, columns, optional, what)
@@ -319,8 +320,8 @@ def _scan_train_log(run: Run) -> tuple[pl.LazyFrame, Path] | None:
         if not path.is_file():
             continue
         try:
-            frame = (pl.scan_csv(path, schema_overrides=_CSV_LOG_TYPES) if path.suffix == ".csv"
-                     else pl.scan_parquet(path))
+            frame = (tablefiles.scan_csv(path, schema_overrides=_CSV_LOG_TYPES) if path.suffix == ".csv"
+                     else tablefiles.scan_parquet(path))
         except (pl.exceptions.PolarsError, OSError) as error:
             raise DataError(f"unreadable training log ({error})", path) from None
         return _conform(frame, path, TRAIN_LOG_COLUMNS, TRAIN_LOG_OPTIONAL, what="training log"), path

@@ -26,6 +26,7 @@ import pyarrow.parquet as pq
 
 from .. import __version__
 from ..errors import DataError, TrajflowError
+from ..util import tablefiles
 from ..util.atomic import atomic_directory, atomic_write_text
 from .tables import (META_DATASET, META_DT, META_PROTOCOL, META_SCHEMA_VERSION, META_TABLE, META_VERSION,
                      PROTOCOLS, SAMPLES, SCENES, SCHEMA_VERSION, TRACKS, TableSpec, conform)
@@ -237,7 +238,7 @@ class Dataset:
                         if k.startswith(b"trajflow.")}
             self._check_metadata(shard, metadata, TRACKS.name)
             validate_columns(pl.Schema(pl.from_arrow(schema.empty_table()).schema), TRACKS, shard)
-        return pl.scan_parquet(shards)
+        return tablefiles.scan_parquet(shards)
 
     def fingerprint(self) -> dict[str, str]:
         """Identifies the data a run was trained on: path, manifest metadata, a hash of the manifest and one of

@@ -70,9 +70,10 @@ from ..metrics.inputs import group_agents, group_minimum
 from ..metrics.rome import KDE_CHOICES, KDE_EXACT
 from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import data_mismatch, open_dataset
+from ..util import tablefiles
 from ..util.atomic import atomic_directory
 from ..util.claim import claim
-from ..util.progress import console, make_progress
+from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machine_description
 from .runs import RunInfo, open_run
 
@@ -415,7 +416,7 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
     horizon = plan_horizon(options, problems, model)
     warnings = horizon_warnings(horizon, "n_future_max" in selection.columns)
     for warning in warnings:
-        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+        say(("warning:", "yellow"), f" {warning}")
     trajectories, log_lik = draw_predictions(model, problems, options, device=torch_device, quiet=quiet,
                                              steps=horizon.predicted)
     # ROME's PCA fallbacks are printed unless quiet, and recorded either way (experiment workers are quiet).
@@ -464,7 +465,7 @@ def _group_counts(problems: Problems, steps: int, metrics: tuple[str, ...]) -> d
 
 def aggregate_metrics(eval_dir: str | Path) -> dict[str, float]:
     """metric -> value of the aggregate rows of an eval directory's metrics table."""
-    table = pl.read_parquet(Path(eval_dir) / "metrics.parquet").filter(pl.col("aggregate"))
+    table = tablefiles.read_parquet(Path(eval_dir) / "metrics.parquet").filter(pl.col("aggregate"))
     return dict(table.select("metric", "value").iter_rows())
 
 

@@ -67,9 +67,10 @@ from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, RunConfig, load_config
 from ..model.models import MODEL_CLASSES
 from ..schemas import open_dataset
+from ..util import tablefiles
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
-from ..util.progress import console
+from ..util.progress import say
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
 from .runs import weights_digest
 from .train import BUDGET_KEYS, CONFIG_FILE, RUN_FILE, budget_raise, budget_size, first_difference, raise_blocker
@@ -267,10 +268,10 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
                   if not run_done(run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir))]
     elsewhere = [name for name in unfinished if name in selected]
     if elsewhere and not quiet:
-        console.print(f"[yellow]{len(elsewhere)} run(s) are still in progress in another process[/] "
-                      f"({', '.join(elsewhere)}); the index includes them once they finish")
+        say((f"{len(elsewhere)} run(s) are still in progress in another process", "yellow"),
+            f" ({', '.join(elsewhere)}); the index includes them once they finish")
     if len(elsewhere) < len(unfinished) and not quiet:
-        console.print(f"{len(unfinished) - len(elsewhere)} unfinished run(s) were not selected by --only")
+        say(f"{len(unfinished) - len(elsewhere)} unfinished run(s) were not selected by --only")
     return out
 
 
@@ -315,10 +316,9 @@ def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool)
             raise different(f"{model}: {first_difference(before, after)}")
         raised.update(change)
     if raised and not quiet:
-        console.print("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new)
-                                                          in raised.items())
-                      + "): runs the larger budget would not have stopped where the old one did continue from "
-                        "their last epoch and are evaluated again")
+        say("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new) in raised.items())
+            + "): runs the larger budget would not have stopped where the old one did continue from their last "
+              "epoch and are evaluated again")
 
 
 def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = None) -> list[str]:
@@ -412,7 +412,11 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
     from .train import train
 
     plan = _plan(config, data)
-    note = (lambda message: console.print(f"{worker}{message}")) if not quiet else (lambda message: None)
+
+    def note(message: str, style: str = "") -> None:
+        if not quiet:
+            say(worker, (message, style))
+
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         if selected is not None and name not in selected:
@@ -420,17 +424,17 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
         run_dir = out / "runs" / name
         if run_done(run_dir, run_overrides(config, model, run_dir)):
             if not worker:  # N workers would say it N times
-                note(f"[dim]{index}/{len(plan)} {name}: done earlier, skipped[/]")
+                note(f"{index}/{len(plan)} {name}: done earlier, skipped", "dim")
             continue
         with claim(out / "runs" / f".{name}.lock") as mine:
             if not mine:
                 if not worker:  # sibling workers taking runs is expected; another command doing so is news
-                    note(f"[dim]{index}/{len(plan)} {name}: in progress in another process, left to it[/]")
+                    note(f"{index}/{len(plan)} {name}: in progress in another process, left to it", "dim")
                 continue
             overrides = run_overrides(config, model, run_dir)  # as the run is now that it is ours
             if run_done(run_dir, overrides):  # finished by another process between the check and the claim
                 continue
-            note(f"[bold]{index}/{len(plan)} {name}[/]")
+            note(f"{index}/{len(plan)} {name}", "bold")
             inner_quiet = quiet or bool(worker)
             # Returns at once for a trained run; continues a run whose budget was raised (when that budget
             # stopped it: otherwise its model, and so its evaluation, stay as they are).
@@ -440,7 +444,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
             if not run_evaluated(run_dir) or _final_model(run_dir) != model_before:
                 evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
                          quiet=inner_quiet)
-        note(f"[green]{index}/{len(plan)} {name}: done[/]")
+        note(f"{index}/{len(plan)} {name}: done", "green")
         _write_index(out, config, data, plan)
 
 
@@ -454,8 +458,7 @@ def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, devic
     if options.workers is None:
         options = replace(options, workers=max(1, resolve_workers(None) // jobs))
     if not quiet:
-        console.print(f"{jobs} worker processes, {threads} torch thread(s) and {options.workers} evaluation "
-                      f"worker(s) each")
+        say(f"{jobs} worker processes, {threads} torch thread(s) and {options.workers} evaluation worker(s) each")
     context = multiprocessing.get_context("spawn")
     workers = [context.Process(target=_worker_main, name=f"experiment-worker-{i}",
                                args=(config, data, out, device, quiet, f"(worker {i}) ", options, threads, selected))
@@ -491,7 +494,7 @@ def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, q
         _work(config, data, out, device=device, quiet=quiet, worker=worker, eval_options=options,
               selected=selected)
     except TrajflowError as error:
-        console.print(f"{worker}[red]error:[/] {error}")
+        say(worker, ("error:", "red"), f" {error}")
         sys.exit(1)
     except KeyboardInterrupt:  # Ctrl-C reaches every worker; the parent reports it once
         sys.exit(130)
@@ -506,7 +509,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
     with claim(out / ".index.lock", wait=True):
         finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r))]
         if finished:
-            metrics = pl.concat([pl.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
+            metrics = pl.concat([tablefiles.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
                                 how="vertical_relaxed")
             with atomic_file(out / "metrics.parquet") as tmp:
                 metrics.write_parquet(tmp)

@@ -21,6 +21,7 @@ import polars as pl
 from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
+from ..util import tablefiles
 from .windows import complete_windows, identical_input_groups
 
 #: common class labels of public datasets mapped onto the contract's agent types
@@ -69,12 +70,12 @@ def _read_strings(path: Path) -> pl.DataFrame:
         raise DataError("input file not found", path=path)
     if path.suffix.lower() in (".parquet", ".pq"):
         try:
-            frame = pl.read_parquet(path)
+            frame = tablefiles.read_parquet(path)
         except Exception as error:  # polars raises several unrelated types for unreadable files
             raise DataError(f"cannot read Parquet file ({error})", path=path) from None
         return frame.with_columns(pl.all().cast(pl.String))
     try:
-        frame = pl.read_csv(path, infer_schema=False)
+        frame = tablefiles.read_csv(path, infer_schema=False)
     except (pl.exceptions.ComputeError, pl.exceptions.NoDataError) as error:
         raise _locate_csv_error(path, error) from None
     return frame

@@ -88,7 +88,7 @@ import polars as pl
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
-from ..util.progress import console, make_progress
+from ..util.progress import make_progress, say
 from .windows import identical_input_groups
 
 DATASET = "forking_paths"
@@ -618,8 +618,8 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
     scenes_table = pl.DataFrame(scene_rows, schema_overrides={"fold": pl.String})
     single = samples.group_by("group_id").len().filter(pl.col("len") == 1).height
     if skipped and not quiet:
-        console.print(f"[yellow]warning:[/] skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} "
-                      "steps around the fork (listed in dataset.json, lineage.skipped)")
+        say(("warning:", "yellow"), f" skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} "
+            "steps around the fork (listed in dataset.json, lineage.skipped)")
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
         for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):

@@ -75,7 +75,8 @@ from PIL import Image, UnidentifiedImageError
 
 from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
-from ..util.progress import console, make_progress
+from ..util import tablefiles
+from ..util.progress import make_progress, say
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
 from .windows import GROUP_TOLERANCE_M, _window_hashes
 
@@ -168,7 +169,7 @@ class RecordingResult:
 def _warn(message: str, warnings: list[str]) -> None:
     """Show a warning on stderr (even under --quiet: it changes what the dataset holds) and keep it."""
     warnings.append(message)
-    console.print(f"[bold yellow]warning:[/] {message}", highlight=False, soft_wrap=True)
+    say(("warning:", "bold yellow"), f" {message}")
 
 
 # --------------------------------------------------------------------------------------------- discovering input
@@ -235,7 +236,7 @@ def _recording_number(value: int | str) -> int:
 
 def _header(path: Path) -> list[str]:
     try:
-        return pl.read_csv(path, n_rows=0).columns
+        return tablefiles.read_csv(path, n_rows=0).columns
     except pl.exceptions.NoDataError:
         raise DataError("file is empty", path=path) from None
     except (pl.exceptions.PolarsError, OSError) as error:
@@ -253,7 +254,7 @@ def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFram
     if missing:
         raise DataError(f"missing column(s) {', '.join(missing)}; found {', '.join(header)}", path=path)
     try:
-        frame = pl.read_csv(path, columns=list(columns), schema_overrides=columns)
+        frame = tablefiles.read_csv(path, columns=list(columns), schema_overrides=columns)
     except (pl.exceptions.PolarsError, OSError):
         raise _locate_bad_cell(path, columns) from None
     frame = frame.select(list(columns)).with_row_index("__row")
@@ -271,7 +272,7 @@ def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFram
 def _locate_bad_cell(path: Path, columns: dict[str, pl.DataType]) -> DataError:
     """Find the first cell that does not parse as its column's type (the slow path, only after a failure)."""
     try:
-        text = pl.read_csv(path, columns=list(columns), infer_schema=False)
+        text = tablefiles.read_csv(path, columns=list(columns), infer_schema=False)
     except (pl.exceptions.PolarsError, OSError) as error:
         return DataError(f"cannot parse CSV ({str(error).splitlines()[0]})", path=path)
     for name, dtype in columns.items():

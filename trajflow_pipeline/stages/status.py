@@ -33,6 +33,7 @@ from ..errors import DataError, TrajflowError, UsageError
 from ..model.config import RunConfig, load_config
 from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
+from ..util import tablefiles
 from .evaluate import EVAL_DIR, ROME_CACHE_DIR
 from .experiment import (ExperimentConfig, load_experiment, plan_order, run_done, run_evaluated, run_name,
                          run_overrides)
@@ -373,7 +374,7 @@ def _read_log(path: Path) -> pl.DataFrame | None:
     if not path.is_file():
         return None
     try:
-        return pl.read_parquet(path, columns=["epoch", "stage", "val_loss", "seconds"])
+        return tablefiles.read_parquet(path, columns=["epoch", "stage", "val_loss", "seconds"])
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable training log ({error})", path) from None
 
@@ -415,7 +416,7 @@ def _aggregates(run_dir: Path) -> dict[str, float]:
     """The evaluated run's aggregate metrics (metric -> mean)."""
     path = run_dir / EVAL_DIR / "metrics.parquet"
     try:
-        table = pl.read_parquet(path, columns=["metric", "value", "aggregate"]).filter(pl.col("aggregate"))
+        table = tablefiles.read_parquet(path, columns=["metric", "value", "aggregate"]).filter(pl.col("aggregate"))
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable metrics ({error})", path) from None
     return {str(metric): float(value) for metric, value in table.select("metric", "value").iter_rows()

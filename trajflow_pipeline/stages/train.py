@@ -75,8 +75,9 @@ from ..model.config import MODEL_NAMES, DataSpec, RunConfig, load_config
 from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..schemas import data_mismatch
+from ..util import tablefiles
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
-from ..util.progress import console, make_progress
+from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machines_after, revisions_after
 
 CONFIG_FILE = "config.toml"
@@ -133,7 +134,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     start_from = source if source is not None and not _started(run_dir, resume, source) else None
     if resume and previous is None and _trained(run_dir):
         if dist.rank == 0 and not quiet:
-            console.print(f"[dim]{run_dir}: already trained, nothing to resume[/]")
+            say((f"{run_dir}: already trained, nothing to resume", "dim"))
         return run_dir
     torch_device = resolve_device(config.train.device, dist.local_rank)
     dist.start(torch_device)
@@ -206,7 +207,7 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
     raised = budget_raise(saved, requested)
     if raised is None:
         return f"{run_dir}: {first_difference(saved, requested)} (only epoch budgets may be raised)"
-    log = pl.read_parquet(run_dir / LOG_FILE) if (run_dir / LOG_FILE).is_file() else pl.DataFrame(schema=LOG_SCHEMA)
+    log = tablefiles.read_parquet(run_dir / LOG_FILE) if (run_dir / LOG_FILE).is_file() else pl.DataFrame(schema=LOG_SCHEMA)
     stages = log.get_column("stage").to_list()
     for key, (old_value, _) in raised.items():
         stage = BUDGET_KEYS[key]
@@ -545,7 +546,7 @@ class _Session:
         train_batch = _on_device(self.data.train, self.device)
         val_batch = _on_device(self.data.val, self.device)
         stages = self.model.stages
-        with make_progress(self.quiet or not self.writer, TextColumn("{task.fields[status]}")) as bars:
+        with make_progress(self.quiet or not self.writer, TextColumn("{task.fields[status]}", markup=False)) as bars:
             for index in range(stage_index, len(stages)):
                 stage = stages[index]
                 if stage in self.model.closed_form_stages:
@@ -723,8 +724,8 @@ class _Session:
             except DataError as error:
                 value = math.nan
                 if not self.quiet:
-                    console.print(f"[yellow]warning:[/] epoch {epoch}: no sample-based validation NLL ({error}); "
-                                  "these weights are not kept")
+                    say(("warning:", "yellow"), f" epoch {epoch}: no sample-based validation NLL ({error}); these "
+                        "weights are not kept")
         return float(self.dist.gather(value)[0])
 
     # -- persistence -----------------------------------------------------------------------------------------------
@@ -833,7 +834,7 @@ class _Session:
 
     def _say(self, message: str) -> None:
         if self.writer and not self.quiet:
-            console.print(f"[dim]{self.run_dir}: {message}[/]")
+            say((f"{self.run_dir}: {message}", "dim"))
 
     def _restore(self, state: dict[str, Any]) -> tuple[int, _StageProgress]:
         """Load a training state (already reconciled with the config by `_follow_budget`)."""
@@ -846,8 +847,8 @@ class _Session:
         self.machines = machines_after(state.get("machines"), str(self.device))
         progress = _progress_from(state)
         if self.writer and not self.quiet:
-            console.print(f"[dim]resuming {self.run_dir}: stage {int(state['stage_index']) + 1}, "
-                          f"after epoch {progress.epoch}[/]")
+            say((f"resuming {self.run_dir}: stage {int(state['stage_index']) + 1}, after epoch {progress.epoch}",
+                 "dim"))
         return int(state["stage_index"]), progress
 
     def _finish(self) -> None:
@@ -866,8 +867,8 @@ class _Session:
             self._write_run_info("finished", info_extra)
             if not self.quiet:
                 best = ", ".join(f"{stage} {_kept_by(b)} (epoch {b['epoch']})" for stage, b in self.best.items())
-                console.print(f"[green]trained[/] {self.model.name} -> {self.run_dir / FINAL_DIR}: {best}"
-                              + (f"; skipped {self.skipped_total} non-finite steps" if self.skipped_total else ""))
+                say(("trained", "green"), f" {self.model.name} -> {self.run_dir / FINAL_DIR}: {best}"
+                    + (f"; skipped {self.skipped_total} non-finite steps" if self.skipped_total else ""))
         self.dist.barrier()
 
     def _write_run_info(self, status: str, extra: dict[str, Any] | None = None) -> None:
