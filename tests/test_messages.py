@@ -32,3 +32,20 @@ def test_tables_show_cells_exactly(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["inspect", str(data)], env={"COLUMNS": "400"})
     assert result.exit_code == 0, result.output
     assert "d [x] :100:" in result.output and "💯" not in result.output
+
+
+@pytest.mark.parametrize("name", ["n" * 250, "é" * 127], ids=["250 ascii bytes", "254 utf-8 bytes"])
+def test_long_output_names_get_legal_temporary_names(tmp_path: Path, name: str) -> None:
+    """The temporary sibling of a result adds a prefix and random characters; a final name near the file
+    system's 255-byte limit must still work: for a dataset directory, a replaced one and a single file."""
+    from trajflow_pipeline.util.atomic import atomic_directory, atomic_write_text
+
+    data = ingest_synthetic_bimodal(tmp_path / name, samples=40, seed=1, quiet=True)
+    assert data.name == name
+    again = ingest_synthetic_bimodal(tmp_path / name, samples=40, seed=2, quiet=True, overwrite=True)
+    assert again == data and [p.name for p in tmp_path.iterdir()] == [name]
+    atomic_write_text(tmp_path / name / name, "text")
+    assert (tmp_path / name / name).read_text() == "text"
+    with atomic_directory(tmp_path / "out" / name) as tmp:
+        (tmp / "x").write_text("1")
+    assert (tmp_path / "out" / name / "x").read_text() == "1"

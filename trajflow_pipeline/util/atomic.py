@@ -7,6 +7,7 @@ directory is atomic on POSIX), so an interrupted run leaves either the old resul
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import shutil
 import tempfile
@@ -15,8 +16,28 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+#: longest file name (bytes) that common file systems take (ext4, XFS, APFS, NTFS: 255)
+NAME_MAX = 255
+_RANDOM = 8  # random characters in a temporary name
+
+
+def _tmp_prefix(name: str, suffix: str = "") -> str:
+    """``.NAME.tmp-`` for a temporary sibling of NAME, which will be followed by random characters and `suffix`.
+
+    A final name near NAME_MAX is legal, so its temporary sibling must be too: NAME is then cut to what fits and
+    a hash of the whole name keeps siblings of different long names apart.
+    """
+    prefix = f".{name}.tmp-"
+    room = NAME_MAX - _RANDOM - len(suffix.encode())
+    if len(prefix.encode()) <= room:
+        return prefix
+    digest = hashlib.sha256(name.encode()).hexdigest()[:12]
+    keep = name.encode()[:room - len(f".~{digest}.tmp-")].decode(errors="ignore")
+    return f".{keep}~{digest}.tmp-"
+
+
 def _tmp_sibling(path: Path, suffix: str = "") -> Path:
-    return path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}{suffix}")
+    return path.with_name(f"{_tmp_prefix(path.name, suffix)}{uuid.uuid4().hex[:_RANDOM]}{suffix}")
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -61,7 +82,7 @@ def atomic_directory(path: str | Path, *, replace: bool = True) -> Iterator[Path
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=_tmp_prefix(path.name), dir=path.parent))
     tmp.chmod(0o777 & ~_umask())
     try:
         yield tmp
