@@ -111,8 +111,10 @@ def test_ragged_csv_line_and_bad_options(tmp_path: Path) -> None:
     assert result.exit_code == 1 and "r.csv:3: expected 5 fields" in result.output
     with pytest.raises(UsageError, match="role=column"):
         ColumnMap.parse("colour=c")
-    result = runner.invoke(app, ["ingest", "csv", str(path), "-o", str(tmp_path / "o"), "--dt", "-1"])
-    assert result.exit_code == 2 and "--dt must be positive" in result.output
+    for dt in ("-1", "nan", "inf"):
+        result = runner.invoke(app, ["ingest", "csv", str(path), "-o", str(tmp_path / "o"), "--dt", dt])
+        assert result.exit_code == 2 and "--dt must be a positive number of seconds" in result.output
+        assert not (tmp_path / "o").exists()
 
 
 def test_paths_with_glob_characters_are_paths(tmp_path: Path) -> None:

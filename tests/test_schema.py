@@ -100,6 +100,14 @@ def test_scenes_and_samples_validation() -> None:
         validate_table(samples.with_columns(n_future=pl.lit(0, dtype=pl.Int64)), SAMPLES, "samples.parquet")
     with pytest.raises(DataError, match="missing column"):
         validate_table(samples.drop("group_id"), SAMPLES, "samples.parquet")
+    with pytest.raises(DataError, match=r"samples.parquet: samples table: split \['testing'\] not one of train, val, "
+                                        r"test \(or null\) \(rows 1; 0-based\)"):
+        validate_table(samples.with_columns(split=pl.Series(["train", "testing", None])), SAMPLES, "samples.parquet")
+    for dt in (0.0, -0.4):
+        with pytest.raises(DataError, match="scenes table: dt must be positive"):
+            validate_table(scenes.with_columns(dt=pl.lit(dt)), SCENES, "scenes.parquet")
+    with pytest.raises(DataError, match="NaN or infinite values in column 'dt'"):
+        validate_table(scenes.with_columns(dt=pl.lit(float("nan"))), SCENES, "scenes.parquet")
 
 
 def test_writer_refuses_invalid_tables_and_leaves_nothing(tmp_path: Path) -> None:
@@ -157,6 +165,21 @@ def test_reading_checks_metadata(tmp_path: Path) -> None:
         open_dataset(out)
     with pytest.raises(DataError, match="not a trajflow dataset"):
         open_dataset(tmp_path)
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    ({"dt": float("nan")}, "dt must be a positive number of seconds, not nan"),
+    ({"dt": 0}, "dt must be a positive number of seconds, not 0.0"),
+    ({"dt": -0.4}, "dt must be a positive number of seconds, not -0.4"),
+    ({"protocol": "leave-one-out"}, "unknown protocol 'leave-one-out'"),
+])
+def test_manifests_every_command_refuses(tmp_path: Path, edit: dict, message: str) -> None:
+    """open_dataset is how every command reads a dataset: a manifest it refuses is refused everywhere."""
+    out = write_toy(tmp_path / "toy")
+    manifest = json.loads((out / "dataset.json").read_text())
+    (out / "dataset.json").write_text(json.dumps({**manifest, **edit}))
+    with pytest.raises(DataError, match=f"dataset.json: {message}"):
+        open_dataset(out)
 
 
 def test_output_path_guard(tmp_path: Path) -> None:

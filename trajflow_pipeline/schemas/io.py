@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from dataclasses import asdict, dataclass, field
@@ -291,4 +292,8 @@ def open_dataset(path: str | Path) -> Dataset:
     if meta.schema_version != SCHEMA_VERSION:
         raise DataError(f"schema version {meta.schema_version}, this trajflow reads version {SCHEMA_VERSION}",
                         path=manifest_path)
+    if not (math.isfinite(meta.dt) and meta.dt > 0):
+        raise DataError(f"dt must be a positive number of seconds, not {meta.dt}", path=manifest_path)
+    if meta.protocol not in PROTOCOLS:
+        raise DataError(f"unknown protocol {meta.protocol!r} (one of {', '.join(PROTOCOLS)})", path=manifest_path)
     return Dataset(path=path, meta=meta, counts=manifest.get("counts", {}), lineage=manifest.get("lineage", {}))

@@ -7,7 +7,7 @@ from pathlib import Path
 import polars as pl
 
 from ..errors import DataError
-from .tables import AGENT_TYPES, SAMPLES, TRACKS, TableSpec
+from .tables import AGENT_TYPES, SAMPLES, SCENES, SPLITS, TRACKS, TableSpec
 
 #: how many offending rows an error message lists
 _SHOW_ROWS = 5
@@ -49,11 +49,15 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
                   if name in frame.columns}
     unknown_type = ~pl.col("agent_type").is_in(AGENT_TYPES) if spec is TRACKS else None
     bad_lengths = (pl.col("n_past") < 1) | (pl.col("n_future") < 1) if spec is SAMPLES else None
+    unknown_split = (pl.col("split").is_not_null() & ~pl.col("split").is_in(SPLITS)) if spec is SAMPLES else None
+    bad_dt = (pl.col("dt") <= 0) if spec is SCENES else None
     out_of_order = _out_of_order(spec) if spec.sort else None
     checks = {**{f"null {name}": bad for name, bad in nulls.items()},
               **{f"finite {name}": bad for name, bad in non_finite.items()},
               **({"type": unknown_type} if unknown_type is not None else {}),
               **({"lengths": bad_lengths} if bad_lengths is not None else {}),
+              **({"split": unknown_split} if unknown_split is not None else {}),
+              **({"dt": bad_dt} if bad_dt is not None else {}),
               **({"order": out_of_order} if out_of_order is not None else {})}
     failed = frame.select(*[bad.any().alias(label) for label, bad in checks.items()]).row(0, named=True) \
         if checks else {}
@@ -64,11 +68,13 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
         if failed[f"finite {name}"]:
             _fail(path, spec.name, f"NaN or infinite values in column '{name}'", _offending_rows(frame, bad))
     if unknown_type is not None and failed["type"]:
-        values = frame.filter(unknown_type).get_column("agent_type").unique().sort().head(5).to_list()
-        _fail(path, spec.name, f"agent_type {values} not one of {', '.join(AGENT_TYPES)}",
-              _offending_rows(frame, unknown_type))
+        _fail_unknown(frame, spec, path, "agent_type", unknown_type, ", ".join(AGENT_TYPES))
     if bad_lengths is not None and failed["lengths"]:
         _fail(path, spec.name, "n_past and n_future must be at least 1", _offending_rows(frame, bad_lengths))
+    if unknown_split is not None and failed["split"]:
+        _fail_unknown(frame, spec, path, "split", unknown_split, f"{', '.join(SPLITS)} (or null)")
+    if bad_dt is not None and failed["dt"]:
+        _fail(path, spec.name, "dt must be positive", _offending_rows(frame, bad_dt))
     # rows strictly increasing in a sort key made of key columns cannot repeat a key: look only when unsorted
     key_implied_by_order = bool(spec.sort) and set(spec.sort) <= set(spec.key)
     if spec.key and not (key_implied_by_order and not failed.get("order")):
@@ -78,6 +84,13 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
     if out_of_order is not None and failed["order"]:
         _fail(path, spec.name, f"rows are not sorted by ({', '.join(spec.sort)})",
               _offending_rows(frame, out_of_order))
+
+
+def _fail_unknown(frame: pl.DataFrame, spec: TableSpec, path: str | Path, column: str, bad: pl.Expr,
+                  allowed: str) -> None:
+    """Fail naming up to five of the values of `column` that are not `allowed`, and their rows."""
+    values = frame.filter(bad).get_column(column).unique().sort().head(5).to_list()
+    _fail(path, spec.name, f"{column} {values} not one of {allowed}", _offending_rows(frame, bad))
 
 
 def _out_of_order(spec: TableSpec) -> pl.Expr:

@@ -13,6 +13,7 @@ last `val_fraction` of every block validates when the block trains. Windows that
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -187,8 +188,8 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
     """Ingest a bring-your-own trajectory table into the dataset directory `out`; returns `out`."""
     del quiet  # one file, read in one pass: nothing worth a progress bar
     path, out = Path(file), Path(out)
-    if dt <= 0:
-        raise UsageError(f"--dt must be positive, got {dt}")
+    if not (math.isfinite(dt) and dt > 0):
+        raise UsageError(f"--dt must be a positive number of seconds, got {dt}")
     if n_past < 2 or n_future < 1:
         raise UsageError("--past must be at least 2 and --future at least 1")
     if split_col is None and folds < 2:
