@@ -49,3 +49,14 @@ def test_long_output_names_get_legal_temporary_names(tmp_path: Path, name: str) 
     with atomic_directory(tmp_path / "out" / name) as tmp:
         (tmp / "x").write_text("1")
     assert (tmp_path / "out" / name / "x").read_text() == "1"
+
+
+def test_long_names_with_undecodable_bytes_get_legal_temporary_names(tmp_path: Path) -> None:
+    """POSIX names are bytes: 10 bytes that are not UTF-8 and 122 two-byte characters (254 bytes)."""
+    import os
+
+    from trajflow_pipeline.util.atomic import atomic_write_text
+
+    name = os.fsdecode(b"\xff" * 10 + "é".encode() * 122)
+    atomic_write_text(tmp_path / name, "text")
+    assert (tmp_path / name).read_text() == "text" and len(list(tmp_path.iterdir())) == 1

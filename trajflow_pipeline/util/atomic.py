@@ -28,11 +28,12 @@ def _tmp_prefix(name: str, suffix: str = "") -> str:
     a hash of the whole name keeps siblings of different long names apart.
     """
     prefix = f".{name}.tmp-"
-    room = NAME_MAX - _RANDOM - len(suffix.encode())
-    if len(prefix.encode()) <= room:
+    room = NAME_MAX - _RANDOM - len(os.fsencode(suffix))
+    if len(os.fsencode(prefix)) <= room:
         return prefix
-    digest = hashlib.sha256(name.encode()).hexdigest()[:12]
-    keep = name.encode()[:room - len(f".~{digest}.tmp-")].decode(errors="ignore")
+    raw = os.fsencode(name)  # the name's bytes as the file system sees them (undecodable bytes included)
+    digest = hashlib.sha256(raw).hexdigest()[:12]
+    keep = os.fsdecode(raw[:room - len(f".~{digest}.tmp-")])
     return f".{keep}~{digest}.tmp-"
 
 
