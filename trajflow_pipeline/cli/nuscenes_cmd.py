@@ -15,7 +15,7 @@ from typing import Annotated
 import typer
 from rich.text import Text
 
-from ..util.progress import console, say, styled
+from ..util.progress import say, styled
 from .common import Overwrite, Quiet, user_errors
 
 
@@ -70,4 +70,4 @@ def ingest_nuscenes_command(
             result = ingest_nuscenes(dataroot, out, version=version, all_agents=all_agents, overwrite=overwrite,
                                      quiet=quiet)
         if not quiet:
-            console.print(_summary(result), soft_wrap=True)
+            say(_summary(result))

@@ -74,7 +74,7 @@ class SocialGNN(nn.Module):
 
     #: how problems are grouped on a CPU (see `forward`): a group grows, in order of size, while its padded edge
     #: tensors stay near the cache (at most GROUP_EDGES edges; measured on the 2-core AMD EPYC: an edge layer's
-    #: forward and backward cost 89 ns per edge for 16 problems of 40 nodes, 268 ns for 16 of 75) and each new
+    #: forward and backward cost 89 ns per edge for 16 problems of 40 nodes, 269 ns for 16 of 75) and each new
     #: member pads the others by at most GROUP_PADDING edges (about what a group's fixed cost buys). Other
     #: devices take the batch in one group (not measured yet).
     GROUP_EDGES = 16384

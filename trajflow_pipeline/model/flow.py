@@ -75,8 +75,9 @@ class RationalQuadraticSpline(Transform):
         bins = self.bins
         k = (knots[..., :bins - 1] < value[..., None]).sum(-1, keepdim=True)                 # bin in [0, K-1]
         below = (k - 1).clamp_(min=0)
-        x0, x1 = self.horizontal.gather(-1, torch.cat((below, k), dim=-1)).unbind(-1)
-        y0, y1 = self.vertical.gather(-1, torch.cat((below, k), dim=-1)).unbind(-1)
+        edges = torch.cat((below, k), dim=-1)
+        x0, x1 = self.horizontal.gather(-1, edges).unbind(-1)
+        y0, y1 = self.vertical.gather(-1, edges).unbind(-1)
         raw = self.raw_derivatives.gather(-1, torch.cat((below, k.clamp(max=bins - 2)), dim=-1))
         d0, d1 = (raw / raw.abs().mul_(1 / self.limit).add_(1)).exp().unbind(-1)   # zuko: u / (1 + |u / log slope|)
         first, last = (k == 0).squeeze(-1), (k == bins - 1).squeeze(-1)
@@ -287,9 +288,12 @@ class ConditionalSplineFlow(nn.Module):
 
     def sample(self, context: Tensor, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """n samples per context row and their log-densities: (n, B, D) and (n, B)."""
-        z = torch.randn((n, context.shape[0], self.features), generator=generator, device=context.device,
-                        dtype=context.dtype)
-        return self.from_noise(z, context)
+        return self.from_noise(self.noise(context, n, generator), context)
+
+    def noise(self, context: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """n base draws z ~ N(0, I) per context row: (n, B, D)."""
+        return torch.randn((n, context.shape[0], self.features), generator=generator, device=context.device,
+                           dtype=context.dtype)
 
     def from_noise(self, z: Tensor, context: Tensor) -> tuple[Tensor, Tensor]:
         """The samples x (n, B, D) that base draws z (n, B, D) map to, and their log-densities (n, B)."""

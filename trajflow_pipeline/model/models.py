@@ -244,8 +244,7 @@ class FlowModel(TrajectoryModel):
         steps = _check_steps(steps, self.spec.n_future)
         norm = self.normalize(batch)
         context = self.context(batch, norm.frame, norm.local_past)
-        z = torch.randn((n, len(batch), self.flow.features), generator=generator, device=context.device,
-                        dtype=context.dtype)                                      # all draws first: one stream
+        z = self.flow.noise(context, n, generator)                               # all draws first: one stream
         per_chunk = max(1, self.SAMPLE_CHUNK_ROWS // max(n, 1))
         displacements, log_lik = [], []
         for first in range(0, len(batch), per_chunk):
