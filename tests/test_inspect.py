@@ -123,3 +123,20 @@ def test_samples_of_unknown_scenes_fail_even_without_the_track_scan(dataset: Pat
     assert code == 1
     assert output.strip() == (f"error: {dataset / 'samples.parquet'}: samples table: scene_id not present in the "
                               "scenes table (rows 2; 0-based)")
+
+
+def test_a_shard_copied_under_a_second_name_is_refused_by_every_reader(dataset: Path) -> None:
+    """The tracks checks are those of every read: what inspect refuses, training and evaluation refuse too."""
+    from trajflow_pipeline.data.loader import load_problems
+    from trajflow_pipeline.errors import DataError
+
+    copy = shard(dataset, 9)
+    copy.write_bytes(shard(dataset, 0).read_bytes())
+    message = (f"{copy}: tracks table: scene 's0' also has rows in part-00000.parquet; a scene must not span two "
+               "shards (rows 0, 1, 2, 3, 4 and 7 more; 0-based)")
+    code, output = inspect(dataset)
+    assert code == 1 and output.strip() == f"error: {message}"
+    for split in ("train", "test"):
+        with pytest.raises(DataError) as raised:
+            load_problems(dataset, fold="1", split=split)
+        assert str(raised.value) == message

@@ -184,3 +184,44 @@ def test_unreadable_or_missing_map_is_named(tmp_path: Path) -> None:
         crops_for_problems(data, np.array(["b"]), AGENT[None], np.zeros(1))
     with pytest.raises(DataError, match="map_world_to_px must be 6"):
         read_map(data / "maps" / "a.png", 0.5, [1.0, 2.0])
+
+
+def _set_map_path(data: Path, scene: str, value: str) -> None:
+    """Hand-edit one scene's map_path, keeping the file's trajflow metadata."""
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(data / "scenes.parquet")
+    frame = pl.from_arrow(table).with_columns(
+        map_path=pl.when(pl.col("scene_id") == scene).then(pl.lit(value)).otherwise(pl.col("map_path")))
+    pq.write_table(frame.to_arrow().replace_schema_metadata(table.schema.metadata), data / "scenes.parquet")
+
+
+@pytest.mark.parametrize("outside", ["/etc/hostname", "../secret.png", "maps/../../secret.png", "C:\\maps\\a.png"])
+def test_map_paths_outside_the_dataset_are_refused_by_the_table_check(tmp_path: Path, outside: str) -> None:
+    from trajflow_pipeline.schemas import open_dataset
+
+    data = _write_dataset(tmp_path / "data")
+    _set_map_path(data, "a", outside)
+    with pytest.raises(DataError, match=r"scenes\.parquet: scenes table: map_path must be a path inside the "
+                                        r"dataset directory .* \(rows 0; 0-based\)"):
+        open_dataset(data).scenes()
+
+
+def test_a_map_that_links_out_of_the_dataset_or_is_no_file_is_refused(tmp_path: Path) -> None:
+    import os
+
+    data = _write_dataset(tmp_path / "data")
+    outside = tmp_path / "elsewhere.png"
+    outside.write_bytes((data / "maps" / "a.png").read_bytes())
+    (data / "maps" / "a.png").unlink()
+    (data / "maps" / "a.png").symlink_to(outside)
+    with pytest.raises(DataError, match=r"a\.png: map raster of scene 'a' leads outside the dataset directory"):
+        crops_for_problems(data, np.array(["a"]), AGENT[None], np.zeros(1))
+    (data / "maps" / "a.png").unlink()
+    os.mkfifo(data / "maps" / "a.png")  # would block a reader forever
+    with pytest.raises(DataError, match=r"a\.png: is a FIFO, not a file that can be read"):
+        crops_for_problems(data, np.array(["a"]), AGENT[None], np.zeros(1))
+    inside = data / "maps" / "link.png"
+    inside.symlink_to(data / "maps" / "b.png")  # a link within the dataset is fine
+    _set_map_path(data, "b", "maps/link.png")
+    assert crops_for_problems(data, np.array(["b"]), AGENT[None], np.zeros(1)).any()

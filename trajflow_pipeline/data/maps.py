@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from PIL import Image, UnidentifiedImageError
 
 from ..errors import DataError
-from ..schemas import open_dataset
+from ..schemas import Dataset, open_dataset
 
 DEFAULT_HEIGHT, DEFAULT_WIDTH = 156, 257
 #: metres per crop pixel (the authors' framework resamples rounD backgrounds to 0.5 m per pixel)
@@ -204,9 +204,9 @@ def _prepared_map(path: str, mtime_ns: int, m_per_px: float, world_to_px: tuple[
     return read_map(path, m_per_px, world_to_px, coarsest_m_per_px=metres_per_pixel_out)
 
 
-def scene_maps(dataset_dir: str | Path) -> pl.DataFrame:
+def scene_maps(dataset: str | Path | Dataset) -> pl.DataFrame:
     """scene_id, map_path, map_m_per_px, map_world_to_px of the scenes that have a map (empty when none do)."""
-    scenes = open_dataset(dataset_dir).scenes()
+    scenes = (dataset if isinstance(dataset, Dataset) else open_dataset(dataset)).scenes()
     columns = ("scene_id", "map_path", "map_m_per_px", "map_world_to_px")
     if any(name not in scenes.columns for name in columns[1:]):
         return pl.DataFrame(schema={"scene_id": pl.String, "map_path": pl.String, "map_m_per_px": pl.Float64,
@@ -233,13 +233,12 @@ def crops_for_problems(dataset_dir: str | Path, scene_id: np.ndarray | list[str]
         raise ValueError(f"scene_id, position and heading differ in length: {len(scene_id)}, {len(position)}, "
                          f"{len(heading)}")
     out = np.zeros((len(scene_id), 1, height, width), dtype=_crop_dtype(dtype))
-    for scene, map_path, m_per_px, affine in scene_maps(dataset_dir).iter_rows():
+    dataset = open_dataset(dataset_dir)
+    for scene, map_path, m_per_px, affine in scene_maps(dataset).iter_rows():
         index = np.flatnonzero(scene_id == scene)
         if len(index) == 0:
             continue
-        path = dataset_dir / map_path
-        if not path.is_file():
-            raise DataError(f"map raster of scene '{scene}' is missing", path=path)
+        path = dataset.map_file(map_path, scene)
         raster = _prepared_map(str(path.resolve()), path.stat().st_mtime_ns, float(m_per_px),
                                tuple(float(v) for v in affine), float(metres_per_pixel_out))
         out[index] = heading_aligned_crops(raster.image, raster.world_to_px, position[index], heading[index],

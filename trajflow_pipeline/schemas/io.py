@@ -28,10 +28,11 @@ import pyarrow.parquet as pq
 from .. import __version__
 from ..errors import DataError, TrajflowError
 from ..util import tablefiles
-from ..util.atomic import atomic_directory, atomic_write_text
+from ..util.atomic import atomic_directory, atomic_write_text, recover
 from .tables import (META_DATASET, META_DT, META_PROTOCOL, META_SCHEMA_VERSION, META_TABLE, META_VERSION,
                      PROTOCOLS, SAMPLES, SCENES, SCHEMA_VERSION, TRACKS, TableSpec, conform)
-from .validate import validate_columns, validate_references, validate_table
+from .validate import (shard_scenes, validate_columns, validate_references, validate_shard_scenes,
+                       validate_table)
 
 MANIFEST = "dataset.json"
 TRACKS_DIR = "tracks"
@@ -151,8 +152,8 @@ def check_output_path(out: Path, dataset: str, *, overwrite: bool) -> None:
         raise TrajflowError(f"{out}: output directory is not empty and holds no trajflow dataset; "
                             "choose another path or pass --overwrite")
     try:
-        existing = json.loads(manifest.read_text()).get("dataset")
-    except (OSError, json.JSONDecodeError):
+        existing = json.loads(tablefiles.read_text(manifest)).get("dataset")
+    except (TrajflowError, OSError, json.JSONDecodeError, AttributeError):  # unreadable, or not a JSON object
         existing = None
     if existing != dataset:
         raise TrajflowError(f"{out}: output path already holds dataset '{existing}', not '{dataset}'; "
@@ -164,7 +165,7 @@ def _read_parquet(path: Path, spec: TableSpec) -> tuple[pl.DataFrame, dict[str, 
     if not path.exists():
         raise DataError(f"{spec.name} table is missing", path=path)
     try:
-        table = pq.read_table(path)
+        table = pq.read_table(tablefiles.regular_file(path))
     except (pa.ArrowException, OSError) as error:
         raise DataError(f"cannot read Parquet file ({error})", path=path) from None
     metadata = {k.decode(errors="replace"): v.decode(errors="replace")
@@ -214,12 +215,21 @@ class Dataset:
         return self._table(SAMPLES, self.path / "samples.parquet")
 
     def iter_track_shards(self) -> Iterator[tuple[Path, pl.DataFrame]]:
-        """Each tracks shard, fully validated, one at a time (memory bounded by the shard size)."""
+        """Each tracks shard, fully validated, one at a time (memory bounded by the shard size and a row per
+        scene): its own contents (:func:`validate_table`), and against the others and the scenes table (every row's
+        scene exists, no scene continues from an earlier shard), so that every reader of the tracks, whatever
+        part of them it keeps, sees the same checked table."""
         shards = self.track_shards
         if not shards:
             raise DataError("tracks table is missing (no tracks/part-*.parquet)", path=self.path / TRACKS_DIR)
+        scene_ids = self.scenes().select("scene_id")
+        earlier = shard_scenes(pl.DataFrame(schema={"scene_id": pl.String()}), "")
         for shard in shards:
-            yield shard, self._table(TRACKS, shard)
+            frame = self._table(TRACKS, shard)
+            validate_references(frame, scene_ids, shard, table=TRACKS.name)
+            validate_shard_scenes(frame, earlier, shard)
+            earlier = pl.concat([earlier, shard_scenes(frame, shard)], rechunk=False)
+            yield shard, frame
 
     def tracks(self) -> pl.DataFrame:
         """All tracks, validated shard by shard (use :meth:`scan_tracks` for larger-than-memory data)."""
@@ -241,10 +251,23 @@ class Dataset:
             validate_columns(pl.Schema(pl.from_arrow(schema.empty_table()).schema), TRACKS, shard)
         return tablefiles.scan_parquet(shards)
 
+    def map_file(self, relative: str, scene: str | None = None) -> Path:
+        """The raster file a scenes row's `map_path` names, checked to lie inside the dataset directory once links
+        are followed (the table checks refuse absolute and '..' paths; a link could still lead out) and to be a
+        regular file."""
+        path = self.path / relative
+        of_scene = f" of scene '{scene}'" if scene is not None else ""
+        if not path.exists():
+            raise DataError(f"map raster{of_scene} is missing", path=path)
+        if not path.resolve().is_relative_to(self.path.resolve()):
+            raise DataError(f"map raster{of_scene} leads outside the dataset directory (to {path.resolve()})",
+                            path=path)
+        return tablefiles.regular_file(path)
+
     def fingerprint(self) -> dict[str, str]:
         """Identifies the data a run was trained on: path, manifest metadata, a hash of the manifest and one of
         the manifest less the places its inputs lay (``data_sha256``: the same for a copy ingested elsewhere)."""
-        manifest = (self.path / MANIFEST).read_bytes()
+        manifest = tablefiles.read_bytes(self.path / MANIFEST)
         placeless = json.dumps(_without_locations(json.loads(manifest)), sort_keys=True).encode()
         return {"path": str(self.path.resolve()), "dataset": self.meta.dataset, "dt": repr(self.meta.dt),
                 "protocol": self.meta.protocol, "schema_version": str(self.meta.schema_version),
@@ -278,12 +301,14 @@ def open_dataset(path: str | Path) -> Dataset:
     """Open a dataset directory written by trajflow, checking its manifest."""
     path = Path(path)
     if not path.is_dir():
+        recover(path)  # an interrupted replacement may have left the previous version aside
+    if not path.is_dir():
         raise DataError("dataset directory not found", path=path)
     manifest_path = path / MANIFEST
     if not manifest_path.exists():
         raise DataError(f"not a trajflow dataset ({MANIFEST} is missing)", path=path)
     try:
-        manifest = json.loads(manifest_path.read_text())
+        manifest = json.loads(tablefiles.read_text(manifest_path))
         meta = DatasetMeta(dataset=str(manifest["dataset"]), dt=float(manifest["dt"]),
                            protocol=str(manifest["protocol"]), schema_version=int(manifest["schema_version"]),
                            version=str(manifest["version"]))

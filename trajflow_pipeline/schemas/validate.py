@@ -51,6 +51,7 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
     bad_lengths = (pl.col("n_past") < 1) | (pl.col("n_future") < 1) if spec is SAMPLES else None
     unknown_split = (pl.col("split").is_not_null() & ~pl.col("split").is_in(SPLITS)) if spec is SAMPLES else None
     bad_dt = (pl.col("dt") <= 0) if spec is SCENES else None
+    bad_map = _outside_dataset(pl.col("map_path")) if spec is SCENES and "map_path" in frame.columns else None
     out_of_order = _out_of_order(spec) if spec.sort else None
     checks = {**{f"null {name}": bad for name, bad in nulls.items()},
               **{f"finite {name}": bad for name, bad in non_finite.items()},
@@ -58,6 +59,7 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
               **({"lengths": bad_lengths} if bad_lengths is not None else {}),
               **({"split": unknown_split} if unknown_split is not None else {}),
               **({"dt": bad_dt} if bad_dt is not None else {}),
+              **({"map": bad_map} if bad_map is not None else {}),
               **({"order": out_of_order} if out_of_order is not None else {})}
     failed = frame.select(*[bad.any().alias(label) for label, bad in checks.items()]).row(0, named=True) \
         if checks else {}
@@ -75,6 +77,9 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
         _fail_unknown(frame, spec, path, "split", unknown_split, f"{', '.join(SPLITS)} (or null)")
     if bad_dt is not None and failed["dt"]:
         _fail(path, spec.name, "dt must be positive", _offending_rows(frame, bad_dt))
+    if bad_map is not None and failed["map"]:
+        _fail(path, spec.name, "map_path must be a path inside the dataset directory (relative, without '..')",
+              _offending_rows(frame, bad_map))
     # rows strictly increasing in a sort key made of key columns cannot repeat a key: look only when unsorted
     key_implied_by_order = bool(spec.sort) and set(spec.sort) <= set(spec.key)
     if spec.key and not (key_implied_by_order and not failed.get("order")):
@@ -84,6 +89,13 @@ def validate_table(frame: pl.DataFrame, spec: TableSpec, path: str | Path) -> No
     if out_of_order is not None and failed["order"]:
         _fail(path, spec.name, f"rows are not sorted by ({', '.join(spec.sort)})",
               _offending_rows(frame, out_of_order))
+
+
+def _outside_dataset(relative: pl.Expr) -> pl.Expr:
+    """True where a path meant to be relative to the dataset directory is absolute (POSIX or Windows style) or
+    climbs out of it through a '..' component."""
+    return relative.is_not_null() & (relative.str.contains(r"^([/\\]|[A-Za-z]:)")
+                                     | relative.str.contains(r"(^|[/\\])\.\.([/\\]|$)"))
 
 
 def _fail_unknown(frame: pl.DataFrame, spec: TableSpec, path: str | Path, column: str, bad: pl.Expr,
@@ -182,25 +194,19 @@ def validate_shard_scenes(tracks: pl.DataFrame, earlier: pl.DataFrame, path: str
 
 
 class TracksContentCheck:
-    """Checks of the tracks against the scenes and samples that a single shard cannot settle, fed one validated
-    shard at a time so that memory stays bounded by one shard plus a row per sample and per scene.
-
-    Per shard: every row's scene exists and no scene continues from an earlier shard. At :meth:`finish`: every
-    sample's window was complete in some shard.
+    """The check of the tracks against the samples that a single shard cannot settle (every sample's window is
+    complete in some shard), fed one shard at a time so that memory stays bounded by one shard plus a row per
+    sample. The shards' own checks, and those against the scenes and the other shards, are made by every read of
+    them (:meth:`trajflow_pipeline.schemas.io.Dataset.iter_track_shards`).
     """
 
-    def __init__(self, scenes: pl.DataFrame, samples: pl.DataFrame, samples_path: str | Path) -> None:
-        self.scenes = scenes
+    def __init__(self, samples: pl.DataFrame, samples_path: str | Path) -> None:
         self.samples_path = samples_path
         self.windows = sample_windows(samples)
-        self.seen = pl.DataFrame(schema={"scene_id": pl.String(), _SHARD: pl.String()})
         self.complete: list[pl.Series] = []
 
-    def add_shard(self, tracks: pl.DataFrame, path: str | Path) -> None:
-        """Check one shard already validated by :func:`validate_table` (keys unique and sorted)."""
-        validate_references(tracks, self.scenes, path, table=TRACKS.name)
-        validate_shard_scenes(tracks, self.seen, path)
-        self.seen = pl.concat([self.seen, shard_scenes(tracks, path)], rechunk=False)
+    def add_shard(self, tracks: pl.DataFrame) -> None:
+        """Note which samples' windows one shard (as read by ``iter_track_shards``) holds complete."""
         self.complete.append(windows_inside(self.windows, tracks))
 
     def finish(self) -> None:

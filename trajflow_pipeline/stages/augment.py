@@ -297,9 +297,7 @@ def _copy_maps(ds: Dataset, scenes: pl.DataFrame, root: Path) -> None:
     if "map_path" not in scenes.columns:
         return
     for relative in scenes.get_column("map_path").drop_nulls().unique().sort().to_list():
-        source, target = ds.path / relative, root / relative
-        if not source.is_file():
-            raise DataError("map raster referenced by scenes.map_path is missing", path=source)
+        source, target = ds.map_file(relative), root / relative
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(source, target)
 

@@ -16,17 +16,17 @@ from ..schemas import PROTOCOL_FOLDS, Dataset, open_dataset
 from ..schemas.validate import TracksContentCheck, validate_references
 
 
-def check_tracks(ds: Dataset, scenes: pl.DataFrame, samples: pl.DataFrame) -> None:
+def check_tracks(ds: Dataset, samples: pl.DataFrame) -> None:
     """Validate the contents of every tracks shard, one shard in memory at a time.
 
-    Per shard (as training and evaluation do when they read it): nulls, NaN or infinite values, agent types,
-    duplicated (scene_id, agent_id, frame) keys and sort order. Across tables: rows of scenes missing from the
-    scenes table, scenes spanning two shards, samples whose window is not complete in the tracks. Raises a
-    DataError naming the file and the offending rows.
+    What every read of the tracks checks (training and evaluation included): per shard nulls, NaN or infinite
+    values, agent types, duplicated (scene_id, agent_id, frame) keys and sort order; rows of scenes missing from
+    the scenes table, scenes spanning two shards. Here also: samples whose window is not complete in the tracks.
+    Raises a DataError naming the file and the offending rows.
     """
-    check = TracksContentCheck(scenes, samples, ds.path / "samples.parquet")
-    for shard, tracks in ds.iter_track_shards():
-        check.add_shard(tracks, shard)
+    check = TracksContentCheck(samples, ds.path / "samples.parquet")
+    for _, tracks in ds.iter_track_shards():
+        check.add_shard(tracks)
         del tracks  # let it go before the next shard is read: one shard in memory, not two
     check.finish()
 
@@ -41,7 +41,7 @@ def summarize(path: str | Path, *, check_tracks_contents: bool = False) -> dict[
     scenes, samples = ds.scenes(), ds.samples()
     validate_references(samples, scenes, ds.path / "samples.parquet")
     if check_tracks_contents:
-        check_tracks(ds, scenes, samples)
+        check_tracks(ds, samples)
     tracks = ds.scan_tracks()
     agents = tracks.select(pl.struct("scene_id", "agent_id").n_unique()).collect().item()
     types = (tracks.group_by("agent_type").agg(pl.struct("scene_id", "agent_id").n_unique().alias("agents"),
