@@ -49,6 +49,7 @@ def test_small_flat_folder_ingests(tmp_path: Path) -> None:
     ("10.0\t1.0\tabc\t2.0", ["biwi_eth.txt:4:", "column 'x' is not a number: 'abc'"]),
     ("10.0\t1.0\tnan\t2.0", ["biwi_eth.txt:4:", "column 'x' is not finite"]),
     ("10.0\t1.0\t1.0\tinf", ["biwi_eth.txt:4:", "column 'y' is not finite"]),
+    ("10.0\t1.0\t1e300\t2.0", ["biwi_eth.txt:4:", "column 'x' is beyond the largest magnitude accepted"]),
     ("15.0\t1.0\t1.0\t1.0", ["biwi_eth.txt:4:", "not a multiple of the frame step 10"]),
     ("10.0\t1.5\t1.0\t1.0", ["biwi_eth.txt:4:", "ped must be a whole number"]),
     ("0.0\t1.0\t5.0\t5.0", ["biwi_eth.txt:4:", "duplicate row for frame 0, pedestrian 1", "biwi_eth.txt:1"]),
@@ -62,6 +63,18 @@ def test_malformed_lines_are_located(tmp_path: Path, line: str, fragments: list[
     result = ingest(raw, tmp_path / "out")
     assert_one_line_error(result, *fragments)
     assert not (tmp_path / "out").exists()
+
+
+def test_line_breaks_inside_lines_keep_the_line_numbers(tmp_path: Path) -> None:
+    """A form feed, U+2028 or U+0085 between the fields of earlier lines is whitespace: the bad line keeps the
+    number an editor shows."""
+    raw = write_flat_eth(tmp_path / "raw")
+    path = raw / "biwi_eth.txt"
+    lines = path.read_text().splitlines()
+    lines[0], lines[1], lines[2] = (line.replace("\t", sep, 1) for line, sep in zip(lines[:3], "\f\u2028\u0085"))
+    lines.insert(5, "10.0\t1.0\tabc\t2.0")
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert_one_line_error(ingest(raw, tmp_path / "out"), "biwi_eth.txt:6:", "column 'x' is not a number: 'abc'")
 
 
 def test_empty_file_and_empty_folder(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
+from test_ingest_bad_input import assert_one_line_error
 from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.data import list_folds, select_samples
 from trajflow_pipeline.errors import DataError, UsageError
@@ -92,7 +93,8 @@ def test_split_column_gives_a_fixed_protocol(tmp_path: Path) -> None:
      "w.csv:4: column 'py' holds 'NaN'"),
     (lambda f: f.with_columns(time=pl.when(pl.int_range(pl.len()) == 3).then(1.3).otherwise(pl.col("time"))),
      "w.csv:5: time 1.3 is not on the --dt 0.5 grid"),
-    (lambda f: pl.concat([f, f.slice(4, 1)]), "duplicate row for scene 'scene0', agent 1, frame 4"),
+    (lambda f: pl.concat([f, f.slice(4, 1)]), "w.csv:182: duplicate row for scene 'scene0', agent 1, frame 4 "
+     "(first at line 6)"),
     (lambda f: f.head(0), "file has no rows"),
 ])
 def test_bad_csv_input(tmp_path: Path, edit, message: str) -> None:
@@ -125,9 +127,93 @@ def test_paths_with_glob_characters_are_paths(tmp_path: Path) -> None:
     walkers(frames=40).write_csv(folder / "run[1].csv")
     walkers(frames=40, seed=1).write_csv(folder / "data1.csv")
     columns = ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py")
-    out = ingest_csv(folder / "run[1].csv", folder / "ds[2]", dt=0.5, n_past=4, n_future=6, columns=columns)
+    out = ingest_csv(folder / "run[1].csv", folder / "ds[2]", dt=0.5, n_past=4, n_future=6, folds=2,
+                     columns=columns)
     assert open_dataset(out).tracks().height == 2 * 3 * 40
     result = runner.invoke(app, ["inspect", str(out)])
     assert result.exit_code == 0, result.output
     with pytest.raises(DataError, match="input file not found"):
-        ingest_csv(folder / "data*.csv", folder / "merged", dt=0.5, n_past=4, n_future=6, columns=columns)
+        ingest_csv(folder / "data*.csv", folder / "merged", dt=0.5, n_past=4, n_future=6, folds=2, columns=columns)
+
+
+HEADER = "scene_id,agent_id,frame,x,y,note"
+
+
+def track_lines(frames: int = 30) -> list[str]:
+    """One agent of scene 'a' walking along x, one CSV line per frame (file line = frame + 2)."""
+    return [f"a,1,{f},{0.1 * f:.1f},0,ok" for f in range(frames)]
+
+
+def replace_line(line: int, text: str) -> str:
+    """The file with its data line number `line` (header is line 1) replaced by `text`."""
+    lines = [HEADER, *track_lines()]
+    lines[line - 1] = text
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize(("text", "fragments"), [
+    (replace_line(7, ",1,5,0.5,0,ok"), ["c.csv:7: empty scene cell (column 'scene_id')"]),
+    (replace_line(7, "a, ,5,0.5,0,ok"), ["c.csv:7: empty agent cell (column 'agent_id')"]),
+    (replace_line(7, "a,1,,0.5,0,ok"), ["c.csv:7: empty frame cell (column 'frame')"]),
+    (replace_line(7, "a,1,5,0.5"), ["c.csv:7: empty y cell (column 'y')"]),
+    (replace_line(7, ""), ["c.csv:7: blank line"]),
+    (replace_line(7, "a,1,5,1e300,0,ok"), ["c.csv:7: column 'x' holds '1e300', beyond the largest magnitude"]),
+    (replace_line(7, "a,1,5,0.5,-1e39,ok"), ["c.csv:7: column 'y' holds '-1e39', beyond"]),  # float32 overflows
+    (replace_line(7, "a,1,1e300,0.5,0,ok"), ["c.csv:7: column 'frame' holds '1e300', beyond"]),
+    (replace_line(7, "a,1,5,inf,0,ok"), ["c.csv:7: column 'x' holds 'inf', not a finite number"]),
+    (replace_line(7, 'a,1,5,0.5,0,"o"k'), ["c.csv:7: malformed CSV"]),
+    # a quoted field over two lines, then CRLF, a form feed, U+2028, U+0085 and a lone CR inside lines
+    ('\n'.join([HEADER, 'a,1,0,0,0,"two\nlines"', *track_lines()[1:5], "a,1,5,zz,0,ok"]) + "\n",
+     ["c.csv:8: column 'x' holds 'zz', not a number"]),
+    ("\r\n".join([HEADER, "a,1,0,0,0,f\fu\u2028n\u0085l\rx", *track_lines()[1:5], "a,1,5,nan,0,ok"]) + "\r\n",
+     ["c.csv:7: column 'x' holds 'nan', not a finite number"]),
+    ("\n".join([HEADER, *track_lines(), track_lines()[3]]) + "\n",
+     ["c.csv:32: duplicate row for scene 'a', agent 1, frame 3 (first at line 5)"]),
+])
+def test_problems_after_parsing_name_the_csv_line(tmp_path: Path, text: str, fragments: list[str]) -> None:
+    """Every check of a cell names the input file and the line an editor shows, never an output Parquet file."""
+    path = tmp_path / "c.csv"
+    path.write_bytes(text.encode())
+    result = runner.invoke(app, ["ingest", "csv", str(path), "-o", str(tmp_path / "out"), "--dt", "0.4", "-q"])
+    assert_one_line_error(result, *fragments)
+    assert result.exit_code == 1 and "parquet" not in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_split_column_and_parquet_problems_are_located(tmp_path: Path) -> None:
+    frame = walkers().with_columns(split=pl.lit("train"))
+    path = tmp_path / "w.csv"
+    frame.with_columns(split=pl.when(pl.int_range(pl.len()) == 9).then(pl.lit("")).otherwise(pl.col("split"))
+                       ).write_csv(path)
+    columns = ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py")
+    with pytest.raises(DataError, match=r"w\.csv:11: empty split cell \(column 'split'\)"):
+        ingest_csv(path, tmp_path / "ds", dt=0.5, split_col="split", columns=columns)
+    frame.with_columns(split=pl.when(pl.int_range(pl.len()) == 9).then(pl.lit("dev")).otherwise(pl.col("split"))
+                       ).write_csv(path)
+    with pytest.raises(DataError, match=r"w\.csv:11: split column 'split' holds 'dev'"):
+        ingest_csv(path, tmp_path / "ds", dt=0.5, split_col="split", columns=columns)
+    parquet = tmp_path / "w.parquet"
+    frame.with_columns(sid=pl.when(pl.int_range(pl.len()) == 9).then(None).otherwise(pl.col("sid")),
+                       px=pl.when(pl.int_range(pl.len()) == 12).then(1e300).otherwise(pl.col("px"))
+                       ).write_parquet(parquet)
+    with pytest.raises(DataError, match=r"w\.parquet \(row 9\): empty scene cell"):
+        ingest_csv(parquet, tmp_path / "ds", dt=0.5, columns=columns)
+    frame.with_columns(px=pl.when(pl.int_range(pl.len()) == 12).then(1e300).otherwise(pl.col("px"))
+                       ).write_parquet(parquet)
+    with pytest.raises(DataError, match=r"w\.parquet \(row 12\): column 'px' holds '1e\+300'"):
+        ingest_csv(parquet, tmp_path / "ds", dt=0.5, columns=columns)
+
+
+def test_time_far_off_and_empty_type_cells(tmp_path: Path) -> None:
+    """A time whose frame is beyond 2^53 is refused at its line; an empty class label is 'unknown'."""
+    frame = walkers(frames=40).with_columns(cls=pl.when(pl.int_range(pl.len()) == 3).then(pl.lit(""))
+                                            .otherwise(pl.col("cls")))
+    path = tmp_path / "w.csv"
+    frame.write_csv(path)
+    columns = ColumnMap.parse("scene=sid,agent=who,time=time,x=px,y=py,type=cls")
+    out = ingest_csv(path, tmp_path / "ds", dt=0.5, n_past=4, n_future=6, folds=2, columns=columns)
+    assert "unknown" in set(open_dataset(out).tracks().get_column("agent_type"))
+    frame.with_columns(time=pl.when(pl.int_range(pl.len()) == 5).then(5e15).otherwise(pl.col("time"))
+                       ).write_csv(path)
+    with pytest.raises(DataError, match=r"w\.csv:7: time '.+' at --dt 0\.5 is frame 1e\+16, beyond"):
+        ingest_csv(path, tmp_path / "ds2", dt=0.5, n_past=4, n_future=6, folds=2, columns=columns)

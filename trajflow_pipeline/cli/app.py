@@ -128,8 +128,22 @@ def ingest_csv_command(
     past: Annotated[int, typer.Option(help="Observed steps per sample (including t0).")] = 8,
     future: Annotated[int, typer.Option(help="Predicted steps per sample.")] = 12,
     name: Annotated[Optional[str], typer.Option(help="Dataset name (default: the file's stem).")] = None,
-    split_col: Annotated[Optional[str], typer.Option(help="Column holding train/val/test per row.")] = None,
-    folds: Annotated[int, typer.Option(help="Time-block folds per scene when no --split-col is given.")] = 5,
+    protocol: Annotated[Optional[str], typer.Option(
+        help="folds (cross-validation: train --fold F tests on fold F), fixed (train / val / test from --split-col "
+             "or a --test-fraction holdout) or train-is-test (every sample tests; a --val-fraction validates; "
+             "for multi-future data). Default: fixed with --split-col, else folds.")] = None,
+    split_by: Annotated[str, typer.Option(
+        help="What folds, holdouts and validation sets are made of: time (cuts of each scene's timeline; windows "
+             "across a cut are dropped), scene (whole scenes, seeded), group (whole groups of identical inputs, "
+             "seeded) or auto (time unless its cuts drop more than half of the windows, then scene).")] = "auto",
+    folds: Annotated[int, typer.Option(help="Folds of --protocol folds.")] = 5,
+    val_fraction: Annotated[float, typer.Option(
+        help="Part validating: the end of each time block or timeline, or a seeded share of the units.")] = 0.2,
+    test_fraction: Annotated[Optional[float], typer.Option(
+        help="--protocol fixed without --split-col: the part held out for test (timelines' ends or units).")] = None,
+    split_col: Annotated[Optional[str], typer.Option(
+        help="Column holding train/val/test per row, read at each sample's t0 row (--protocol fixed).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the scene / group assignment.")] = 0,
     overwrite: Overwrite = False,
     quiet: Quiet = False,
 ) -> None:
@@ -138,7 +152,9 @@ def ingest_csv_command(
 
     with user_errors():
         result = ingest_csv(file, out, dt=dt, columns=ColumnMap.parse(columns), n_past=past, n_future=future,
-                            dataset=name, split_col=split_col, folds=folds, overwrite=overwrite, quiet=quiet)
+                            dataset=name, split_col=split_col, folds=folds, val_fraction=val_fraction,
+                            protocol=protocol, split_by=split_by, test_fraction=test_fraction, seed=seed,
+                            overwrite=overwrite, quiet=quiet)
         _done(result, quiet)
 
 

@@ -3,26 +3,39 @@
 The file has one row per (scene, agent, time) with x / y in metres; column names are mapped by options.
 Samples follow the strict ETH/UCY-style protocol (every agent at every frame with n_past + n_future consecutive
 positions); samples with identical inputs share a group_id (even across scenes), so multi-future data brought
-this way gets JSD evaluation too.
+this way gets JSD evaluation too. Every problem found in the file names it and its line (CSV, as an editor counts
+lines) or its row (Parquet).
 
-Splits: with `--split-col` a column of the file says train / val / test (read at each sample's t0 row; fixed
-protocol); otherwise each scene's timeline is cut into `--folds` equal time blocks, a block is a fold, and the
-last `val_fraction` of every block validates when the block trains. Windows that cross a cut are test-only.
+Protocols (``--protocol``; the default is ``fixed`` with ``--split-col``, else ``folds``), made of units chosen by
+``--split-by``: ``time`` cuts each scene's timeline (windows that cross a cut are dropped from the parts it
+separates), ``scene`` deals whole scenes, ``group`` whole groups of identical inputs (seeded); ``auto`` takes
+``time`` unless its cuts drop more than half of the windows (short scenes), then ``scene``.
+
+* ``folds``: `--folds` time blocks per scene, or units dealt into folds; a `val_fraction` of each block's end (or
+  of the units) validates when its fold trains.
+* ``fixed``: `--split-col` names a column saying train / val / test (read at each sample's t0 row), or
+  `--test-fraction` holds out that part of the timelines' ends or of the units (and `val_fraction` validates).
+* ``train-is-test``: every sample tests (multi-future benchmarks); a `val_fraction` of the units (or of each
+  timeline's end) validates, the rest trains.
+
+A protocol that leaves a fold (or the dataset) without test or training samples is refused at ingest.
 """
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import polars as pl
 
 from ..errors import DataError, UsageError
-from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, PROTOCOL_TRAIN_IS_TEST, PROTOCOLS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
 from ..util import tablefiles
+from .ingest_forking_paths import assign_folds
+from .textfile import csv_record_line, csv_records, in_range, range_problem
 from .windows import complete_windows, identical_input_groups
 
 #: common class labels of public datasets mapped onto the contract's agent types
@@ -34,6 +47,9 @@ TYPE_ALIASES: dict[str, str] = {
 }
 
 ROLES = ("scene", "agent", "frame", "time", "x", "y", "type")
+
+#: what folds, holdouts and validation sets are made of (`--split-by`)
+SPLIT_UNITS = ("auto", "time", "scene", "group")
 
 
 @dataclass(frozen=True)
@@ -64,6 +80,54 @@ class ColumnMap:
             values["frame"] = None
         return cls(**values)
 
+    def required(self) -> dict[str, str]:
+        """role -> column of the roles every row must fill (the type column may be empty: unknown)."""
+        return {role: column for role in ("scene", "agent", "frame", "time", "x", "y")
+                if (column := getattr(self, role))}
+
+
+@dataclass(frozen=True)
+class SplitOptions:
+    """How samples are split (see the module docstring): the protocol, its units and fractions, the seed."""
+
+    protocol: str | None = None
+    split_col: str | None = None
+    split_by: str = "auto"
+    folds: int = 5
+    val_fraction: float = 0.2
+    test_fraction: float | None = None
+    seed: int = 0
+
+    @property
+    def resolved_protocol(self) -> str:
+        """The protocol asked for, or the default: fixed with a split column, else folds."""
+        return self.protocol or (PROTOCOL_FIXED if self.split_col else PROTOCOL_FOLDS)
+
+    def check(self) -> None:
+        """Refuse option combinations that cannot mean anything, before any file is read."""
+        protocol = self.resolved_protocol
+        if protocol not in PROTOCOLS:
+            raise UsageError(f"--protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
+        if self.split_by not in SPLIT_UNITS:
+            raise UsageError(f"--split-by must be one of {', '.join(SPLIT_UNITS)}, got {self.split_by!r}")
+        if not (math.isfinite(self.val_fraction) and 0 <= self.val_fraction < 1):
+            raise UsageError(f"--val-fraction must be at least 0 and below 1, got {self.val_fraction}")
+        if self.split_col and protocol != PROTOCOL_FIXED:
+            raise UsageError(f"--split-col gives the fixed protocol, not {protocol}; drop one of them")
+        if self.split_col and (self.test_fraction is not None or self.split_by != "auto"):
+            raise UsageError("--split-col says each row's split; drop --test-fraction and --split-by")
+        if protocol == PROTOCOL_FIXED and not self.split_col:
+            if self.test_fraction is None:
+                raise UsageError("--protocol fixed needs --split-col COLUMN or --test-fraction F")
+            if not (math.isfinite(self.test_fraction) and 0 < self.test_fraction < 1
+                    and self.test_fraction + self.val_fraction < 1):
+                raise UsageError(f"--test-fraction must be above 0 and, with --val-fraction, below 1; got "
+                                 f"{self.test_fraction} and {self.val_fraction}")
+        elif self.test_fraction is not None:
+            raise UsageError(f"--test-fraction holds out a test set of the fixed protocol, not of {protocol}")
+        if protocol == PROTOCOL_FOLDS and self.folds < 2:
+            raise UsageError(f"--folds must be at least 2, got {self.folds}")
+
 
 def _read_strings(path: Path) -> pl.DataFrame:
     """The file's cells as strings (Parquet columns are cast), with the error located where possible."""
@@ -84,42 +148,88 @@ def _read_strings(path: Path) -> pl.DataFrame:
 
 def _locate_csv_error(path: Path, error: Exception) -> DataError:
     """Find the first line whose field count differs from the header (polars does not say which)."""
-    with open(path, newline="", encoding="utf-8", errors="replace") as handle:
-        rows = csv.reader(handle)
-        header = next(rows, None)
-        if not header:
-            return DataError("file is empty", path=path)
-        for number, row in enumerate(rows, start=2):
-            if row and len(row) != len(header):
-                return DataError(f"expected {len(header)} fields as in the header, found {len(row)}",
-                                 path=path, line=number)
+    records = csv_records(path, strict=True)
+    _, header = next(records, (1, []))
+    if not header:
+        return DataError("file is empty", path=path)
+    for line, row in records:
+        if row and len(row) != len(header):
+            return DataError(f"expected {len(header)} fields as in the header, found {len(row)}", path=path,
+                             line=line)
     return DataError(f"cannot parse CSV ({str(error).splitlines()[0]})", path=path)
 
 
 def _location(path: Path, row: int) -> dict[str, int]:
-    """Error location for a 0-based data row: a line number for CSV (header is line 1), a row for Parquet."""
-    return {"row": row} if path.suffix.lower() in (".parquet", ".pq") else {"line": row + 2}
+    """Error location for a 0-based data row: its line for CSV (where its record starts), a row for Parquet."""
+    line = None if path.suffix.lower() in (".parquet", ".pq") else csv_record_line(path, row)
+    return {"row": row} if line is None else {"line": line}
 
 
-def _numeric(frame: pl.DataFrame, column: str, path: Path, dtype: pl.DataType) -> pl.Expr:
-    """Cast a string column, raising a DataError at the first cell that is missing, non-numeric or non-finite."""
+def _first(mask: pl.Series) -> int | None:
+    """The first row where a boolean series is true (null counts as false), or None."""
+    hits = mask.fill_null(False).arg_true()
+    return int(hits[0]) if len(hits) else None
+
+
+def _check_filled(raw: pl.DataFrame, columns: dict[str, str], path: Path) -> None:
+    """Every cell of the required columns (role -> column) holds something; the error names the earliest line."""
+    first: tuple[int, str, str] | None = None
+    for role, column in columns.items():
+        cells = raw.get_column(column)
+        row = _first(cells.is_null() | (cells.str.strip_chars() == ""))
+        if row is not None and (first is None or row < first[0]):
+            first = (row, role, column)
+    if first is not None:
+        row, role, column = first
+        blank = all(value is None for value in raw.row(row))  # polars reads a blank line as a row of nulls
+        raise DataError("blank line" if blank else f"empty {role} cell (column '{column}')", path=path,
+                        **_location(path, row))
+
+
+def _numeric(frame: pl.DataFrame, column: str, path: Path, dtype: pl.DataType) -> pl.Series:
+    """Cast a filled string column, raising a DataError at the first cell that is not a number, not finite or
+    beyond :data:`textfile.MAX_MAGNITUDE` (or, for Int64, not whole)."""
     values = frame.get_column(column).str.strip_chars().cast(pl.Float64, strict=False)
-    bad = values.is_null() | ~values.is_finite()
-    if bad.any():
-        row = int(bad.arg_true()[0])
-        raise DataError(f"column '{column}' holds {frame[column][row]!r}, not a finite number",
-                        path=path, **_location(path, row))
+    row = _first(~in_range(values).fill_null(False))
+    if row is not None:
+        value = values[row]
+        why = ("not a number" if value is None else
+               "not a finite number" if not math.isfinite(value) else range_problem(value))
+        raise DataError(f"column '{column}' holds {frame[column][row]!r}, {why}", path=path, **_location(path, row))
     if dtype == pl.Int64:
-        fractional = values != values.round()
-        if fractional.any():
-            row = int(fractional.arg_true()[0])
+        row = _first(values != values.round())
+        if row is not None:
             raise DataError(f"column '{column}' must hold whole numbers, got {frame[column][row]!r}",
                             path=path, **_location(path, row))
-    return pl.lit(values).cast(dtype)
+    return values.cast(dtype)
+
+
+def _frames(raw: pl.DataFrame, columns: ColumnMap, dt: float, path: Path) -> pl.Series:
+    """Each row's frame: the frame column, or the time column on the --dt grid; its time must be finite too."""
+    if columns.frame:
+        frame = _numeric(raw, columns.frame, path, pl.Int64)
+    else:
+        assert columns.time is not None
+        seconds = _numeric(raw, columns.time, path, pl.Float64)
+        steps = seconds / dt
+        row = _first((steps - steps.round()).abs() > 1e-3)
+        if row is not None:
+            raise DataError(f"time {seconds[row]} is not on the --dt {dt} grid; resample the data first",
+                            path=path, **_location(path, row))
+        row = _first(~in_range(steps))
+        if row is not None:
+            raise DataError(f"time {raw[columns.time][row]!r} at --dt {dt} is frame {steps[row]:.4g}, "
+                            f"{range_problem(steps[row])}", path=path, **_location(path, row))
+        frame = steps.round().cast(pl.Int64)
+    row = _first(~(frame.cast(pl.Float64) * dt).is_finite())
+    if row is not None:
+        raise DataError(f"frame {frame[row]} at --dt {dt} is a time that is not finite", path=path,
+                        **_location(path, row))
+    return frame
 
 
 def _tracks(raw: pl.DataFrame, columns: ColumnMap, dt: float, path: Path, scene_default: str) -> pl.DataFrame:
-    """Map the input's columns onto the tracks contract, checking every cell."""
+    """Map the input's columns onto the tracks contract, checking every cell (errors name the file and line)."""
     wanted = [c for c in (columns.scene, columns.agent, columns.frame, columns.time, columns.x, columns.y,
                           columns.type) if c]
     missing = [c for c in wanted if c not in raw.columns]
@@ -128,63 +238,199 @@ def _tracks(raw: pl.DataFrame, columns: ColumnMap, dt: float, path: Path, scene_
                         "(map columns with --columns role=name,...)", path=path)
     if columns.frame is None and columns.time is None:
         raise UsageError("--columns must name a frame or a time column")
-    if columns.frame:
-        frame = _numeric(raw, columns.frame, path, pl.Int64)
-    else:
-        seconds = raw.select(_numeric(raw, columns.time, path, pl.Float64)).to_series()
-        steps = seconds / dt
-        off_grid = (steps - steps.round()).abs() > 1e-3
-        if off_grid.any():
-            row = int(off_grid.arg_true()[0])
-            raise DataError(f"time {seconds[row]} is not on the --dt {dt} grid; resample the data first",
-                            path=path, **_location(path, row))
-        frame = pl.lit(steps.round()).cast(pl.Int64)
+    _check_filled(raw, columns.required(), path)
+    frame = _frames(raw, columns, dt, path)
+    x, y = _numeric(raw, columns.x, path, pl.Float64), _numeric(raw, columns.y, path, pl.Float64)
     agent = raw.get_column(columns.agent)
     numeric_agent = agent.str.strip_chars().cast(pl.Int64, strict=False)
     agent_expr = (pl.lit(numeric_agent) if numeric_agent.null_count() == 0
                   else pl.lit(agent).rank("dense").cast(pl.Int64).alias("agent_id"))
     if columns.type:
         labels = raw.get_column(columns.type).str.strip_chars().str.to_lowercase()
-        agent_type = pl.lit(labels.replace_strict(TYPE_ALIASES, default="unknown", return_dtype=pl.String))
+        agent_type = pl.lit(labels.replace_strict(TYPE_ALIASES, default="unknown", return_dtype=pl.String)
+                            .fill_null("unknown"))
     else:
         agent_type = pl.lit("pedestrian")
     scene = pl.col(columns.scene).cast(pl.String) if columns.scene else pl.lit(scene_default)
     tracks = raw.select(
         scene.alias("scene_id"), agent_expr.alias("agent_id"), agent_type.alias("agent_type"),
-        frame.alias("frame"),
-        _numeric(raw, columns.x, path, pl.Float64).alias("x"), _numeric(raw, columns.y, path, pl.Float64).alias("y"),
+        pl.lit(frame).alias("frame"), pl.lit(x).alias("x"), pl.lit(y).alias("y"),
         *([pl.col(columns.agent).alias("agent_label")] if numeric_agent.null_count() else []),
     ).with_row_index("__row").with_columns(t=pl.col("frame").cast(pl.Float64) * dt)
-    duplicated = tracks.filter(pl.struct("scene_id", "agent_id", "frame").is_duplicated())
-    if duplicated.height:
-        first = duplicated.row(0, named=True)
-        raise DataError(f"duplicate row for scene {first['scene_id']!r}, agent {first['agent_id']}, "
-                        f"frame {first['frame']}", path=path, **_location(path, int(first["__row"])))
+    row = _first(~tracks.select(pl.struct("scene_id", "agent_id", "frame").is_first_distinct()).to_series())
+    if row is not None:
+        again = tracks.row(row, named=True)
+        earlier = _first((tracks.get_column("scene_id") == again["scene_id"])
+                         & (tracks.get_column("agent_id") == again["agent_id"])
+                         & (tracks.get_column("frame") == again["frame"]))
+        assert earlier is not None
+        where = _location(path, earlier)
+        first = f"line {where['line']}" if "line" in where else f"row {where['row']}"
+        raise DataError(f"duplicate row for scene {again['scene_id']!r}, agent {again['agent_id']}, frame "
+                        f"{again['frame']} (first at {first})", path=path, **_location(path, row))
     return tracks.sort("scene_id", "agent_id", "frame")
 
 
-def _fold_assignment(windows: pl.DataFrame, tracks: pl.DataFrame, folds: int, val_fraction: float,
-                     n_past: int, n_future: int) -> pl.DataFrame:
-    """Cut each scene's timeline into `folds` equal blocks; tag each window with its block and train/val part."""
-    extent = tracks.group_by("scene_id").agg(pl.col("frame").min().alias("first"), pl.col("frame").max().alias("last"))
-    span = (pl.col("last") - pl.col("first") + 1).cast(pl.Float64)
-    start, end = pl.col("t0_frame") - (n_past - 1), pl.col("t0_frame") + n_future
-    block_of = lambda frame: ((frame - pl.col("first")).cast(pl.Float64) * folds / span).floor().cast(pl.Int64)  # noqa: E731
-    position = lambda frame: (frame - pl.col("first")).cast(pl.Float64) * folds / span - block_of(frame)  # noqa: E731
-    tagged = windows.join(extent, on="scene_id").with_columns(block=block_of(start), end_block=block_of(end))
-    crosses = pl.col("block") != pl.col("end_block")
-    in_val = position(start) >= 1 - val_fraction
-    in_train = position(end) < 1 - val_fraction
-    return tagged.with_columns(
-        fold=pl.when(crosses).then(None).otherwise(pl.col("block").cast(pl.String)),
-        split=pl.when(crosses).then(None).when(in_train).then(pl.lit("train")).when(in_val).then(pl.lit("val"))
-        .otherwise(None),
-    ).drop("first", "last", "block", "end_block")
+def _split_labels(raw: pl.DataFrame, tracks: pl.DataFrame, split_col: str, path: Path) -> pl.DataFrame:
+    """(scene_id, agent_id, t0_frame, split) from the split column at every track row, checked row by row."""
+    if split_col not in raw.columns:
+        raise DataError(f"split column '{split_col}' not found; found {', '.join(raw.columns)}", path=path)
+    _check_filled(raw, {"split": split_col}, path)
+    values = raw.get_column(split_col).str.strip_chars().str.to_lowercase()
+    row = _first(~values.is_in(SPLITS))
+    if row is not None:
+        raise DataError(f"split column '{split_col}' holds {raw[split_col][row]!r}; use train, val or test",
+                        path=path, **_location(path, row))
+    return tracks.select("scene_id", "agent_id", pl.col("frame").alias("t0_frame"),
+                         pl.lit(values).gather(pl.col("__row")).alias("split"))
+
+
+# --- protocols ------------------------------------------------------------------------------------------------
+# Working columns: window offsets from the scene's first frame and the scene's span of frames.
+_START, _END, _SPAN, _UNIT = "__start", "__end", "__span", "__unit"
+
+
+def _timeline(samples: pl.DataFrame, tracks: pl.DataFrame) -> pl.DataFrame:
+    """Adds where each sample's window starts and ends (offsets of its first and last frame from its scene's first
+    frame) and the scene's span of frames; a fraction `f` of the timeline is offset `f * span`."""
+    extent = tracks.group_by("scene_id").agg(pl.col("frame").min().alias("__first"),
+                                             (pl.col("frame").max() - pl.col("frame").min() + 1).alias(_SPAN))
+    return (samples.join(extent, on="scene_id", how="left", maintain_order="left")
+            .with_columns((pl.col("t0_frame") - pl.col("n_past") + 1 - pl.col("__first")).alias(_START),
+                          (pl.col("t0_frame") + pl.col("n_future") - pl.col("__first")).alias(_END))
+            .drop("__first"))
+
+
+def _time_folds(timeline: pl.DataFrame, folds: int, val_fraction: float) -> pl.DataFrame:
+    """Each scene's timeline cut into `folds` equal blocks: a window inside block b has fold b and trains, or
+    validates in the block's last `val_fraction`; windows across a block's edge have no fold, across its
+    validation cut no split (test-only)."""
+    def position(offset: str) -> pl.Expr:
+        return (pl.col(offset) * folds).cast(pl.Float64) / pl.col(_SPAN)
+
+    block = position(_START).floor()
+    crosses = block != position(_END).floor()
+    return timeline.with_columns(
+        fold=pl.when(crosses).then(None).otherwise(block.cast(pl.Int64).cast(pl.String)),
+        split=pl.when(crosses).then(None).when(position(_END) - block < 1 - val_fraction).then(pl.lit("train"))
+        .when(position(_START) - block >= 1 - val_fraction).then(pl.lit("val")).otherwise(None))
+
+
+def _time_parts(timeline: pl.DataFrame, parts: list[tuple[str, float, float]]) -> pl.DataFrame:
+    """split = the part (name, from, to: fractions of each scene's timeline) that holds a window whole, else null;
+    no fold."""
+    split = pl.lit(None, dtype=pl.String)
+    for name, low, high in reversed(parts):
+        inside = ((pl.col(_START).cast(pl.Float64) >= low * pl.col(_SPAN))
+                  & (pl.col(_END).cast(pl.Float64) < high * pl.col(_SPAN)))
+        split = pl.when(inside).then(pl.lit(name)).otherwise(split)
+    return timeline.with_columns(split=split, fold=pl.lit(None, dtype=pl.String))
+
+
+def _holdout(units: list[str], test_fraction: float, val_fraction: float, seed: int) -> pl.DataFrame:
+    """unit -> split: a seeded `test_fraction` of the units (at least one) test, a `val_fraction` validate."""
+    n = len(units)
+    order = np.random.default_rng(seed).permutation(n)
+    n_test = min(n, max(1, round(test_fraction * n)))
+    n_val = min(n - n_test, round(val_fraction * n))
+    split = np.full(n, "train", dtype=object)
+    split[order[:n_test]] = "test"
+    split[order[n_test:n_test + n_val]] = "val"
+    return pl.DataFrame({_UNIT: units, "split": split.astype(str)})
+
+
+def _unit_splits(samples: pl.DataFrame, unit: str, options: SplitOptions) -> pl.DataFrame:
+    """fold and split of every sample from its unit (whole scenes or groups), seeded."""
+    key = pl.col("scene_id") if unit == "scene" else pl.col("group_id").cast(pl.String)
+    keyed = samples.with_columns(key.alias(_UNIT))
+    units = (samples.get_column("scene_id").unique().sort() if unit == "scene"
+             else samples.get_column("group_id").unique().sort().cast(pl.String)).to_list()
+    protocol = options.resolved_protocol
+    if protocol == PROTOCOL_FIXED:
+        assert options.test_fraction is not None
+        table = _holdout(units, options.test_fraction, options.val_fraction, options.seed)
+        table = table.with_columns(fold=pl.lit(None, dtype=pl.String))
+    else:
+        folds = options.folds if protocol == PROTOCOL_FOLDS else 1
+        table = assign_folds(units, folds, options.val_fraction, options.seed).select(
+            pl.col("moment").alias(_UNIT), "split",
+            pl.col("fold") if protocol == PROTOCOL_FOLDS else pl.lit(None, dtype=pl.String).alias("fold"))
+    return keyed.join(table, on=_UNIT, how="left", maintain_order="left").drop(_UNIT)
+
+
+def _time_splits(timeline: pl.DataFrame, options: SplitOptions) -> pl.DataFrame:
+    """fold and split of every sample from where its window lies on its scene's timeline."""
+    protocol, val = options.resolved_protocol, options.val_fraction
+    if protocol == PROTOCOL_FOLDS:
+        return _time_folds(timeline, options.folds, val)
+    if protocol == PROTOCOL_FIXED:
+        assert options.test_fraction is not None
+        # cut points rounded so that 1 - 0.2 - 0.2 is the 0.6 a user means, not 0.6000000000000001
+        val_cut, test_cut = round(1 - options.test_fraction - val, 12), round(1 - options.test_fraction, 12)
+        return _time_parts(timeline, [("train", 0.0, val_cut), ("val", val_cut, test_cut), ("test", test_cut, 1.0)])
+    return _time_parts(timeline, [("train", 0.0, round(1 - val, 12)), ("val", round(1 - val, 12), 1.0)])
+
+
+def assign_splits(samples: pl.DataFrame, tracks: pl.DataFrame, options: SplitOptions) -> tuple[pl.DataFrame, str]:
+    """Samples with `fold` and `split` under the options' protocol, and the unit they were made of (`auto`
+    resolved: time unless its cuts drop more than half of the windows, then scene)."""
+    timeline = _timeline(samples, tracks)
+    by_time = _time_splits(timeline, options)
+    unit = options.split_by
+    if unit == "auto":
+        kept = by_time.get_column("fold" if options.resolved_protocol == PROTOCOL_FOLDS else "split").count()
+        unit = "time" if 2 * kept >= samples.height else "scene"
+    chosen = by_time if unit == "time" else _unit_splits(samples, unit, options)
+    return chosen.select(*samples.columns, "split", "fold"), unit
+
+
+def _counts(samples: pl.DataFrame, options: SplitOptions) -> list[tuple[str, int, int]]:
+    """(test fold or "", test samples, training samples) of each test the protocol defines, as the loader selects
+    them."""
+    protocol, split = options.resolved_protocol, pl.col("split")
+    if protocol == PROTOCOL_FOLDS:
+        return [(str(fold), *samples.select((pl.col("fold") == str(fold)).sum().alias("test"),
+                                            (pl.col("fold").ne_missing(str(fold)) & (split == "train")).sum()
+                                            .alias("train")).row(0))
+                for fold in range(options.folds)]
+    test = samples.height if protocol == PROTOCOL_TRAIN_IS_TEST else samples.select((split == "test").sum()).item()
+    return [("", test, samples.select((split == "train").sum()).item())]
+
+
+def check_protocol(samples: pl.DataFrame, options: SplitOptions, unit: str, path: Path) -> None:
+    """Refuse, at ingest, a protocol that leaves a test (a fold, or the dataset) without test or training samples,
+    saying why and what to change."""
+    protocol = options.resolved_protocol
+    how = (f"--split-col {options.split_col}" if options.split_col else
+           f"--split-by {unit}{' (auto)' if options.split_by == 'auto' else ''}")
+    where = f"{path}: --protocol {protocol} {how}"
+    count = samples.get_column("scene_id" if unit == "scene" else "group_id").n_unique()
+    if unit in ("scene", "group") and protocol == PROTOCOL_FOLDS and count < options.folds:
+        raise UsageError(f"{where}: only {count} {unit}(s) for {options.folds} folds; use fewer --folds"
+                         + (" or --split-by scene" if unit == "group" else ""))
+    for fold, test, train in _counts(samples, options):
+        if test and train:
+            continue
+        missing = "test" if not test else "training"
+        what = f"fold {fold} has no {missing} samples" if fold else f"no {missing} samples"
+        if options.split_col:
+            hint = "the column's value at each sample's t0 row is its split"
+        elif unit == "time":
+            n = int(samples.get_column("n_past")[0] + samples.get_column("n_future")[0])
+            hint = (f"windows of {n} frames that cross a cut of a scene's timeline are dropped, and the scenes are "
+                    "too short for these cuts; use --split-by scene or group"
+                    + (", or fewer --folds" if protocol == PROTOCOL_FOLDS else ""))
+        else:
+            hint = f"{count} {unit}(s) to deal out; " + ("use --split-by time or more data" if count < 3 else
+                                                          "change the fractions or --seed")
+        raise UsageError(f"{where}: {what} ({hint})")
 
 
 def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnMap | None = None,
                n_past: int = 8, n_future: int = 12, dataset: str | None = None, split_col: str | None = None,
-               folds: int = 5, val_fraction: float = 0.2, overwrite: bool = False, quiet: bool = False) -> Path:
+               folds: int = 5, val_fraction: float = 0.2, protocol: str | None = None, split_by: str = "auto",
+               test_fraction: float | None = None, seed: int = 0, overwrite: bool = False,
+               quiet: bool = False) -> Path:
     """Ingest a bring-your-own trajectory table into the dataset directory `out`; returns `out`."""
     del quiet  # one file, read in one pass: nothing worth a progress bar
     path, out = Path(file), Path(out)
@@ -192,8 +438,9 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
         raise UsageError(f"--dt must be a positive number of seconds, got {dt}")
     if n_past < 2 or n_future < 1:
         raise UsageError("--past must be at least 2 and --future at least 1")
-    if split_col is None and folds < 2:
-        raise UsageError(f"--folds must be at least 2, got {folds}")
+    options = SplitOptions(protocol=protocol, split_col=split_col, split_by=split_by, folds=folds,
+                           val_fraction=val_fraction, test_fraction=test_fraction, seed=seed)
+    options.check()
     columns = columns or ColumnMap()
     raw = _read_strings(path)
     if raw.height == 0:
@@ -201,41 +448,37 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
     tracks = _tracks(raw, columns, dt, path, scene_default=path.stem)
     windows = complete_windows(tracks, n_past, n_future)
     if split_col:
-        if split_col not in raw.columns:
-            raise DataError(f"split column '{split_col}' not found; found {', '.join(raw.columns)}", path=path)
-        labels = tracks.select("scene_id", "agent_id", pl.col("frame").alias("t0_frame"),
-                               pl.lit(raw.get_column(split_col)).gather(pl.col("__row")).str.strip_chars()
-                               .str.to_lowercase().alias("split"))
-        bad = labels.filter(~pl.col("split").is_in(SPLITS))
-        if bad.height:
-            first = bad.row(0, named=True)
-            raise DataError(f"split column '{split_col}' holds {first['split']!r}; use train, val or test",
-                            path=path)
-        windows = windows.join(labels, on=["scene_id", "agent_id", "t0_frame"]).with_columns(
-            fold=pl.lit(None, dtype=pl.String))
-        protocol = PROTOCOL_FIXED
-    else:
-        windows = _fold_assignment(windows, tracks, folds, val_fraction, n_past, n_future)
-        protocol = PROTOCOL_FOLDS
+        windows = windows.join(_split_labels(raw, tracks, split_col, path), on=["scene_id", "agent_id", "t0_frame"])
     samples = (windows.sort("scene_id", "t0_frame", "agent_id").with_row_index("sample_id")
                .select(pl.col("sample_id").cast(pl.Int64), "scene_id", "agent_id", "t0_frame",
                        pl.lit(n_past, dtype=pl.Int64).alias("n_past"),
-                       pl.lit(n_future, dtype=pl.Int64).alias("n_future"), "split", "fold",
+                       pl.lit(n_future, dtype=pl.Int64).alias("n_future"),
+                       *(["split"] if split_col else []),
                        pl.struct("scene_id", "t0_frame").rank("dense").cast(pl.Int64).sub(1).alias("joint_id")))
     if samples.height == 0:
         raise DataError(f"no agent has {n_past + n_future} consecutive frames: no samples", path=path)
     tracks = tracks.drop("__row")
     samples = samples.with_columns(group_id=identical_input_groups(samples, tracks))
+    if split_col:
+        samples, unit = samples.with_columns(fold=pl.lit(None, dtype=pl.String)), "column"
+    else:
+        samples, unit = assign_splits(samples, tracks, options)
+    check_protocol(samples, options, unit, path)
     name = dataset or path.stem
+    scene_fold = (samples.group_by("scene_id").agg(pl.col("fold").first())
+                  if unit == "scene" and options.resolved_protocol == PROTOCOL_FOLDS else None)
     scenes = (tracks.group_by("scene_id", maintain_order=True).agg()
               .with_columns(dataset=pl.lit(name), location=pl.col("scene_id"), dt=pl.lit(dt, dtype=pl.Float64),
                             source=pl.lit(str(path)), fold=pl.lit(None, dtype=pl.String)))
-    meta = DatasetMeta(dataset=name, dt=dt, protocol=protocol)
+    if scene_fold is not None:
+        scenes = scenes.drop("fold").join(scene_fold, on="scene_id", how="left", maintain_order="left")
+    meta = DatasetMeta(dataset=name, dt=dt, protocol=options.resolved_protocol)
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
         for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):
             writer.add_tracks(scene_tracks)
-        writer.finish(scenes, samples, lineage={"raw": str(path.resolve()), "columns": vars(columns),
-                                                "n_past": n_past, "n_future": n_future, "split_col": split_col,
-                                                "folds": None if split_col else folds,
-                                                "val_fraction": val_fraction})
+        writer.finish(scenes, samples, lineage={
+            "raw": str(path.resolve()), "columns": vars(columns), "n_past": n_past, "n_future": n_future,
+            "protocol": options.resolved_protocol, "split_col": split_col, "split_by": unit,
+            "folds": folds if options.resolved_protocol == PROTOCOL_FOLDS else None,
+            "val_fraction": val_fraction, "test_fraction": test_fraction, "seed": seed})
     return out
