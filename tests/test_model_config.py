@@ -59,8 +59,8 @@ def test_bad_config_files(tmp_path: Path, text: str, message: str) -> None:
     ("train.nope=1", "train.nope"), ("nope=1", "nope"), ("flow_lr", "key=value"), ("train.flow_lr=abc", "flow_lr"),
     ("model.use_map=1", "use_map"), ("train.flow_select=best", "flow_select must be one of val_loss, val_nll"),
     ("model.gnn_aggregate=max", "gnn_aggregate must be one of sum, mean, not 'max'"),
-    ("train.flow_select_samples=1", "flow_select_samples must be at least 2"),
-    ("train.flow_select_every=0", "flow_select_every must be at least 1"),
+    ("train.flow_select_samples=1", "train.flow_select_samples must be an integer >= 2, got 1"),
+    ("train.flow_select_every=0", "train.flow_select_every must be an integer >= 1, got 0"),
 ])
 def test_bad_overrides(override: str, message: str) -> None:
     with pytest.raises(UsageError, match=message):

@@ -65,7 +65,7 @@ def train_killed_and_resumed(monkeypatch: pytest.MonkeyPatch, run: Path, kill_af
 
     monkeypatch.setattr(train_stage, "_epoch_hook", hook)
     with pytest.raises(Killed):
-        train(run.parent / "data", run, resume=True, **options)
+        train(run.parent / "data", run, resume=run.exists(), **options)
     monkeypatch.setattr(train_stage, "_epoch_hook", None)
     return train(run.parent / "data", run, resume=True, **options)
 
@@ -156,8 +156,8 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
         # newer code continues the run after the first interruption: run.json keeps both revisions
         monkeypatch.setattr(provenance, "code_revision", lambda first=stop_at[0] == "autoencoder": (
             "rev-a" if first else "rev-b"))
-        with pytest.raises(Killed):
-            train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
+        with pytest.raises(Killed):  # the first call starts the run: --resume needs one to continue
+            train(tmp_path / "data", tmp_path / "parts", resume=(tmp_path / "parts").exists(), **options)
         assert not (tmp_path / "parts" / "final").exists()
     monkeypatch.setattr(train_stage, "_epoch_hook", None)
     train(tmp_path / "data", tmp_path / "parts", resume=True, **options)

@@ -8,7 +8,8 @@
   written with ``torch.save`` and read back with ``torch.load(weights_only=True)``.
 
 Both are written atomically (temporary file, fsync, rename): a killed run leaves the previous file intact. A file
-of another model family or of another major format version is refused with a one-line :class:`TrajflowError`.
+of another model family or of another major format version, or weights that do not fit the architecture the file
+describes, are refused with a one-line :class:`DataError` naming the file.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from safetensors import safe_open
 from safetensors.torch import save as safetensors_save
 
 from .. import __version__
-from ..errors import TrajflowError
+from ..errors import DataError, TrajflowError
 from ..util.atomic import atomic_write_bytes
 from .config import DataSpec, RunConfig
 from .models import TrajectoryModel, build_model
@@ -65,7 +66,7 @@ def load_model(path: str | Path, expected_model: str | None = None,
                device: str | torch.device = "cpu") -> TrajectoryModel:
     """Rebuild a model from a model file (or a run directory holding ``final/model.safetensors``), in eval mode.
 
-    Raises :class:`TrajflowError` naming the file when it is missing, unreadable, of another format version, of
+    Raises :class:`DataError` naming the file when it is missing, unreadable, of another format version, of
     another model family than `expected_model`, or does not match the architecture its config describes.
     """
     tune_cpu_allocator()
@@ -73,14 +74,34 @@ def load_model(path: str | Path, expected_model: str | None = None,
     metadata, tensors = _read_safetensors(path, tensors=True)
     meta = _decode_metadata(path, metadata)
     if expected_model is not None and meta["model"] != expected_model:
-        raise TrajflowError(f"{path}: checkpoint is a {meta['model']!r} model, not {expected_model!r}")
+        raise DataError(f"checkpoint is a {meta['model']!r} model, not {expected_model!r}", path)
     try:
         model = build_model(meta["config"], meta["spec"])
-        model.load_state_dict(tensors, strict=True)
-    except (RuntimeError, ValueError, KeyError, TypeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise TrajflowError(f"{path}: weights do not match the {meta['model']!r} architecture ({first})") from None
+    except (RuntimeError, ValueError, KeyError, TypeError, TrajflowError) as exc:
+        raise DataError(f"checkpoint metadata describes no buildable {meta['model']!r} model ({_short(exc)})",
+                        path) from None
+    check_weights(path, tensors, model)
+    model.load_state_dict(tensors, strict=True)
     return model.to(device).eval()
+
+
+def check_weights(path: str | Path, weights: Any, model: torch.nn.Module, what: str = "weights") -> None:
+    """Refuse (DataError naming `path`) `weights` that are not the tensors `model` holds: not a table of tensors,
+    a missing or an unexpected name, or a tensor of another shape, as in a damaged file or one written for another
+    architecture than its config describes. `what` names the part of the file in the message."""
+    if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+        raise DataError(f"{what} are not a table of tensors", path)
+    expected = model.state_dict()
+    differs = f"{what} do not match the architecture the config describes"
+    for names, kind in ((sorted(set(expected) - set(weights)), "no tensor"),
+                        (sorted(set(weights) - set(expected)), "unexpected tensor")):
+        if names:
+            more = f" (and {len(names) - 1} more)" if len(names) > 1 else ""
+            raise DataError(f"{differs}: {kind} {names[0]!r}{more}", path)
+    for name, tensor in expected.items():
+        if weights[name].shape != tensor.shape:
+            raise DataError(f"{differs}: tensor {name!r} has shape {list(weights[name].shape)}, not "
+                            f"{list(tensor.shape)}", path)
 
 
 def save_training_state(path: str | Path, state: dict[str, Any]) -> None:
@@ -95,16 +116,16 @@ def load_training_state(path: str | Path, expected_model: str | None = None) -> 
     """Read a training state written by :func:`save_training_state` with ``weights_only=True``."""
     path = Path(path)
     if not path.is_file():
-        raise TrajflowError(f"{path}: training state not found")
+        raise DataError("training state not found", path)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any failure to parse means a corrupt or foreign file
-        raise TrajflowError(f"{path}: not a readable trajflow training state ({_short(exc)})") from None
+        raise DataError(f"not a readable trajflow training state ({_short(exc)})", path) from None
     if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
-        raise TrajflowError(f"{path}: not a trajflow training state")
+        raise DataError("not a trajflow training state", path)
     _check_version(path, str(state.get("format_version", "")))
     if expected_model is not None and state.get("model") != expected_model:
-        raise TrajflowError(f"{path}: training state is for a {state.get('model')!r} model, not {expected_model!r}")
+        raise DataError(f"training state is for a {state.get('model')!r} model, not {expected_model!r}", path)
     return state
 
 
@@ -117,28 +138,28 @@ def _model_path(path: Path) -> Path:
 
 def _read_safetensors(path: Path, tensors: bool) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
     if not path.is_file():
-        raise TrajflowError(f"{path}: checkpoint not found")
+        raise DataError("checkpoint not found", path)
     try:
         with safe_open(str(path), framework="pt") as handle:
             metadata = handle.metadata() or {}
             values = {name: handle.get_tensor(name) for name in handle.keys()} if tensors else {}
     except Exception as exc:  # noqa: BLE001 - safetensors raises several types for corrupt files
-        raise TrajflowError(f"{path}: not a readable trajflow checkpoint ({_short(exc)})") from None
+        raise DataError(f"not a readable trajflow checkpoint ({_short(exc)})", path) from None
     return metadata, values
 
 
 def _decode_metadata(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
     if metadata.get("format") != MODEL_FORMAT:
-        raise TrajflowError(f"{path}: not a trajflow model checkpoint")
+        raise DataError("not a trajflow model checkpoint", path)
     _check_version(path, metadata.get("format_version", ""))
     try:
         config = RunConfig.from_dict({"model": json.loads(metadata["config"])}, source=str(path)).model
         spec = DataSpec.from_dict(json.loads(metadata["spec"]))
         extra = json.loads(metadata.get("extra", "{}"))
     except (KeyError, ValueError, TypeError, TrajflowError) as exc:
-        raise TrajflowError(f"{path}: checkpoint metadata is damaged ({_short(exc)})") from None
+        raise DataError(f"checkpoint metadata is damaged ({_short(exc)})", path) from None
     if config.name != metadata.get("model"):
-        raise TrajflowError(f"{path}: checkpoint metadata is inconsistent (model {metadata.get('model')!r})")
+        raise DataError(f"checkpoint metadata is inconsistent (model {metadata.get('model')!r})", path)
     return {"model": metadata["model"], "config": config, "spec": spec, "extra": extra,
             "log_lik_space": metadata.get("log_lik_space", ""), "format_version": metadata["format_version"],
             "trajflow_version": metadata.get("trajflow_version", "")}
@@ -147,8 +168,8 @@ def _decode_metadata(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
 def _check_version(path: Path, version: str) -> None:
     major = version.split(".")[0]
     if major != FORMAT_VERSION.split(".")[0]:
-        raise TrajflowError(f"{path}: checkpoint format version {version or '?'} is not supported "
-                            f"(this trajflow reads {FORMAT_VERSION.split('.')[0]}.x)")
+        raise DataError(f"checkpoint format version {version or '?'} is not supported "
+                        f"(this trajflow reads {FORMAT_VERSION.split('.')[0]}.x)", path)
 
 
 def _short(exc: BaseException) -> str:

@@ -3,9 +3,12 @@
 A run is described by a :class:`RunConfig` with two sections, ``[model]`` (:class:`ModelConfig`: architecture and
 the model family) and ``[train]`` (:class:`TrainConfig`: optimisers, early stopping, seed, device). Both load from
 TOML (``tomllib``) and from ``--set section.key=value`` overrides; an unknown key is a :class:`UsageError` that names
-it, so a typo never silently falls back to a default. Facts that come from the data (past / future length, whether
-the dataset has maps) are not configuration: they live in :class:`DataSpec`, which a checkpoint stores beside the
-config so that a model can be rebuilt without the dataset.
+it, so a typo never silently falls back to a default. Each numeric field declares the values it accepts next to it
+(:func:`~trajflow_pipeline.util.bounds.bounded`: finite, within its range), checked whenever a config is read, so a
+NaN learning rate or a negative weight decay is a UsageError naming the key, the value and the file or option.
+Facts that come from the data (past / future length, whether the dataset has maps) are not configuration: they live
+in :class:`DataSpec`, which a checkpoint stores beside the config so that a model can be rebuilt without the
+dataset.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UsageError
+from ..util.bounds import SEED, bounded, check_value
 
 #: Model families selectable with ``--model``; see :mod:`trajflow_pipeline.model.models`.
 MODEL_NAMES: tuple[str, ...] = ("trajflow", "trajflow-no-ae", "flomo", "cv")
@@ -35,76 +39,69 @@ class ModelConfig:
 
     name: str = "trajflow"
     #: Future displacements are multiplied by alpha before the flow / autoencoder sees them.
-    alpha: float = 10.0
+    alpha: float = bounded(10.0, gt=0)
     # RNN autoencoder (trajflow only): Linear(2->embed)+ReLU -> GRU(embed, hidden, layers) -> Linear(hidden->latent).
-    ae_embed: int = 20
-    ae_hidden: int = 20
-    ae_layers: int = 3
-    latent_dim: int = 20
+    ae_embed: int = bounded(20, ge=1)
+    ae_hidden: int = bounded(20, ge=1)
+    ae_layers: int = bounded(3, ge=1)
+    #: at least 2: a coupling layer splits the features in two
+    latent_dim: int = bounded(20, ge=2)
     # Conditional coupling flow with rational-quadratic splines.
-    flow_layers: int = 10
-    flow_bins: int = 8
-    flow_tail_bound: float = 15.0
-    flow_hidden: tuple[int, ...] = (32, 32, 32, 32, 32)
+    flow_layers: int = bounded(10, ge=1)
+    flow_bins: int = bounded(8, ge=2)
+    flow_tail_bound: float = bounded(15.0, gt=0)
+    #: widths of the coupling networks' hidden layers (each bound applies to every width)
+    flow_hidden: tuple[int, ...] = bounded((32, 32, 32, 32, 32), ge=1)
     #: Not in the paper: standardize the flow's input per feature (training mean / std, fitted in a closed-form
     #: stage "standardize" before the flow trains), so that flow_tail_bound is in standard deviations and the
     #: splines' bins cover the data whatever its units (see ConditionalSplineFlow).
     flow_standardize: bool = False
     # Past encoder of the target: Linear(2->embed)+ReLU -> GRU(embed, hidden, layers) -> Linear(hidden->out).
-    past_embed: int = 16
-    past_hidden: int = 16
-    past_layers: int = 3
-    past_out: int = 64
+    past_embed: int = bounded(16, ge=1)
+    past_hidden: int = bounded(16, ge=1)
+    past_layers: int = bounded(3, ge=1)
+    past_out: int = bounded(64, ge=1)
     # Social GNN over all agents present at t0.
     use_social: bool = True
-    gnn_layers: int = 4
-    gnn_width: int = 32
+    gnn_layers: int = bounded(4, ge=1)
+    gnn_width: int = bounded(32, ge=1)
     #: How a node combines its incoming messages: "sum" (the paper) or "mean" (not in the paper: the context of a
     #: crowd then stays in the range of the smaller groups a model was trained on; see SocialGNN).
     gnn_aggregate: str = "sum"
     # CNN over a heading-aligned grey-scale map crop; only built when the dataset has maps.
     use_map: bool = True
-    map_height: int = 156
-    map_width: int = 257
-    map_out: int = 64
+    #: at least 41 pixels: the map CNN has three stride-4 convolutions
+    map_height: int = bounded(156, ge=41)
+    map_width: int = bounded(257, ge=41)
+    map_out: int = bounded(64, ge=1)
     # FloMo training-time noise injection and scaling augmentation (model "flomo" only).
-    flomo_beta: float = 0.2
-    flomo_gamma: float = 0.02
-    flomo_zero_threshold: float = 0.01
-    flomo_scale_std: float = 0.5
-    flomo_scale_min: float = 0.3
-    flomo_scale_max: float = 1.7
+    flomo_beta: float = bounded(0.2, ge=0)
+    flomo_gamma: float = bounded(0.02, ge=0)
+    flomo_zero_threshold: float = bounded(0.01, ge=0)
+    flomo_scale_std: float = bounded(0.5, ge=0)
+    flomo_scale_min: float = bounded(0.3, gt=0, le=1)
+    flomo_scale_max: float = bounded(1.7, ge=1)
 
     def validate(self) -> None:
-        """Reject combinations the architecture cannot build, with a message naming the key."""
+        """Reject values and combinations the architecture cannot build, with a message naming the key."""
+        check_fields(self, "model")
         if self.name not in MODEL_NAMES:
             raise UsageError(f"unknown model {self.name!r}; choose one of {', '.join(MODEL_NAMES)}")
-        if self.alpha <= 0:
-            raise UsageError("model.alpha must be positive")
         if self.latent_dim != self.ae_hidden:
             raise UsageError("model.latent_dim must equal model.ae_hidden: the decoder's hidden state is the latent "
                              "tiled over the GRU layers")
-        if self.latent_dim < 2:
-            raise UsageError("model.latent_dim must be at least 2 (a coupling layer splits the features in two)")
-        for key in ("ae_embed", "ae_layers", "flow_layers", "flow_bins", "past_embed", "past_hidden",
-                    "past_layers", "past_out", "gnn_layers", "gnn_width", "map_out"):
-            if getattr(self, key) < 1:
-                raise UsageError(f"model.{key} must be at least 1")
         if self.gnn_aggregate not in GNN_AGGREGATES:
             raise UsageError(f"model.gnn_aggregate must be one of {', '.join(GNN_AGGREGATES)}, not "
                              f"{self.gnn_aggregate!r}")
-        if self.flow_bins < 2:
-            raise UsageError("model.flow_bins must be at least 2")
-        if self.map_height < 41 or self.map_width < 41:
-            raise UsageError("model.map_height and model.map_width must be at least 41 pixels (3 stride-4 convs)")
-        if self.flow_tail_bound <= 0:
-            raise UsageError("model.flow_tail_bound must be positive")
-        if not self.flow_hidden or any(h < 1 for h in self.flow_hidden):
+        if not self.flow_hidden:
             raise UsageError("model.flow_hidden must be a non-empty list of positive widths")
-        if not 0 < self.flomo_scale_min <= 1 <= self.flomo_scale_max:
-            raise UsageError("model.flomo_scale_min <= 1 <= model.flomo_scale_max is required")
-        if self.flomo_beta < 0 or self.flomo_gamma < 0 or self.flomo_scale_std < 0:
-            raise UsageError("model.flomo_beta, flomo_gamma and flomo_scale_std must be non-negative")
+
+
+def check_fields(section: Any, name: str) -> None:
+    """Refuse a config section (ModelConfig / TrainConfig) holding a value outside its field's bounds (see
+    :func:`~trajflow_pipeline.util.bounds.bounded`), with a UsageError naming the key and the value."""
+    for item in fields(section):
+        check_value(getattr(section, item.name), item.metadata, f"{name}.{item.name}")
 
 
 #: How the social GNN combines a node's incoming messages (ModelConfig.gnn_aggregate).
@@ -123,22 +120,23 @@ class TrainConfig:
     validation weights are kept. ``*_batch_size`` is per process under torchrun.
     """
 
-    seed: int = 0
+    #: seeds torch and numpy (util.bounds.SEED: 0 .. 2**63 - 1, as every command's seed)
+    seed: int = bounded(0, bounds=SEED)
     #: "auto" (CUDA when available, else CPU), "cpu", "cuda" or "cuda:N".
     device: str = "auto"
-    ae_lr: float = 5e-4
-    ae_weight_decay: float = 1e-4
-    ae_batch_size: int = 128
-    ae_max_epochs: int = 5000
-    ae_min_epochs: int = 100
-    ae_patience: int = 10
-    flow_lr: float = 1e-3
-    flow_weight_decay: float = 1e-5
-    flow_batch_size: int = 128
-    flow_lr_decay: float = 0.98
-    flow_max_epochs: int = 500
-    flow_min_epochs: int = 50
-    flow_patience: int = 10
+    ae_lr: float = bounded(5e-4, gt=0)
+    ae_weight_decay: float = bounded(1e-4, ge=0)
+    ae_batch_size: int = bounded(128, ge=1)
+    ae_max_epochs: int = bounded(5000, ge=0)
+    ae_min_epochs: int = bounded(100, ge=0)
+    ae_patience: int = bounded(10, ge=0)
+    flow_lr: float = bounded(1e-3, gt=0)
+    flow_weight_decay: float = bounded(1e-5, ge=0)
+    flow_batch_size: int = bounded(128, ge=1)
+    flow_lr_decay: float = bounded(0.98, gt=0, le=1)
+    flow_max_epochs: int = bounded(500, ge=0)
+    flow_min_epochs: int = bounded(50, ge=0)
+    flow_patience: int = bounded(10, ge=0)
     #: Which flow weights a run keeps. "val_loss" (the reference): those of the epoch with the lowest validation
     #: loss, the flow's NLL in its own space. "val_nll" (ours): those with the lowest evaluation NLL -- ROME
     #: densities of model draws, in metres, pooled over identical inputs, as `trajflow eval` computes it -- on a
@@ -146,43 +144,23 @@ class TrainConfig:
     #: `flow_select_max_pooled` per pooled group), checked every `flow_select_every` epochs and at the last one.
     #: Early stopping follows the validation loss either way, so both keep weights of the same training.
     flow_select: str = "val_loss"
-    flow_select_every: int = 5
-    flow_select_problems: int = 256
-    flow_select_samples: int = 100
-    flow_select_max_pooled: int = 1000
+    flow_select_every: int = bounded(5, ge=1)
+    flow_select_problems: int = bounded(256, ge=1)
+    #: at least 2: a density needs two draws
+    flow_select_samples: int = bounded(100, ge=2)
+    flow_select_max_pooled: int = bounded(1000, ge=2)
     #: Fraction of the training problems held out for validation when the dataset has no validation split.
-    val_fraction: float = 0.1
+    val_fraction: float = bounded(0.1, gt=0, lt=1)
     #: Clip the global gradient norm to this value; 0 disables clipping.
-    grad_clip: float = 0.0
+    grad_clip: float = bounded(0.0, ge=0)
     #: Batch size used for validation passes (no gradients, so it can be larger).
-    eval_batch_size: int = 256
+    eval_batch_size: int = bounded(256, ge=1)
 
     def validate(self) -> None:
         """Reject values no optimiser can use, with a message naming the key."""
-        for key in ("ae_batch_size", "flow_batch_size", "eval_batch_size"):
-            if getattr(self, key) < 1:
-                raise UsageError(f"train.{key} must be at least 1")
-        for key in ("ae_max_epochs", "flow_max_epochs", "ae_min_epochs", "flow_min_epochs", "ae_patience",
-                    "flow_patience"):
-            if getattr(self, key) < 0:
-                raise UsageError(f"train.{key} must be non-negative")
-        for key in ("ae_lr", "flow_lr"):
-            if getattr(self, key) <= 0:
-                raise UsageError(f"train.{key} must be positive")
-        if not 0 < self.flow_lr_decay <= 1:
-            raise UsageError("train.flow_lr_decay must be in (0, 1]")
+        check_fields(self, "train")
         if self.flow_select not in FLOW_SELECTIONS:
             raise UsageError(f"train.flow_select must be one of {', '.join(FLOW_SELECTIONS)}, not {self.flow_select!r}")
-        for key in ("flow_select_every", "flow_select_problems"):
-            if getattr(self, key) < 1:
-                raise UsageError(f"train.{key} must be at least 1")
-        for key in ("flow_select_samples", "flow_select_max_pooled"):
-            if getattr(self, key) < 2:
-                raise UsageError(f"train.{key} must be at least 2 (a density needs two draws)")
-        if not 0 < self.val_fraction < 1:
-            raise UsageError("train.val_fraction must be in (0, 1)")
-        if self.grad_clip < 0:
-            raise UsageError("train.grad_clip must be non-negative (0 disables clipping)")
         if self.device != "auto" and self.device != "cpu" and not self.device.startswith("cuda"):
             raise UsageError(f"train.device must be auto, cpu, cuda or cuda:N, not {self.device!r}")
 
@@ -266,19 +244,33 @@ def load_config(path: str | Path | None = None, overrides: typing.Sequence[str] 
                 raise UsageError(f"{path}: {section!r} must be a table ([{section}])")
             merged[section].update(values)
         config = RunConfig.from_dict(merged, source=str(path))
-    return apply_overrides(config, overrides).validate()
+    config = apply_overrides(config, overrides)
+    try:
+        return config.validate()
+    except UsageError as error:  # a combination of values: name where they came from
+        source = " and ".join(([str(path)] if path is not None else []) + (["--set"] if overrides else []))
+        raise UsageError(f"{source}: {error}" if source else str(error)) from None
 
 
 def apply_overrides(config: RunConfig, overrides: typing.Sequence[str]) -> RunConfig:
     """Apply ``key=value`` strings to `config` (see :func:`load_config`)."""
-    merged = config.to_dict()
+    values: dict[str, Any] = {}
     for item in overrides:
         if "=" not in item:
             raise UsageError(f"--set expects key=value, got {item!r}")
         key, raw = (part.strip() for part in item.split("=", 1))
+        values[key] = _parse_value(raw)
+    return with_values(config, values, source="--set")
+
+
+def with_values(config: RunConfig, values: dict[str, Any], source: str) -> RunConfig:
+    """`config` with the settings `values` (``{"train.seed": 3}``; keys as :func:`load_config` takes them) changed,
+    each checked for its type and bounds; errors name `source` (the option the values came from)."""
+    merged = config.to_dict()
+    for key, value in values.items():
         section, name = _resolve_key(key)
-        merged[section][name] = _parse_value(raw)
-    return RunConfig.from_dict(merged, source="--set")
+        merged[section][name] = value
+    return RunConfig.from_dict(merged, source=source)
 
 
 def to_toml(data: dict[str, dict[str, Any]]) -> str:
@@ -340,6 +332,9 @@ def _section(cls: type, values: Any, section: str, source: str) -> Any:
     if unknown:
         raise UsageError(f"{source}: unknown config key '{section}.{unknown[0]}'")
     kwargs = {key: _coerce(value, hints[key], f"{section}.{key}", source) for key, value in values.items()}
+    for item in fields(cls):
+        if item.name in kwargs:
+            check_value(kwargs[item.name], item.metadata, f"{section}.{item.name}", source)
     return replace(cls(), **kwargs)
 
 

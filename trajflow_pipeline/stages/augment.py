@@ -47,6 +47,7 @@ import polars as pl
 from ..errors import DataError, UsageError
 from ..schemas import Dataset, DatasetMeta, DatasetWriter, open_dataset
 from ..schemas.tables import SPLITS
+from ..util.bounds import check_seed
 from ..util.progress import make_progress
 
 #: output rows per chunk of scenes generated, sorted and handed to the writer at once
@@ -346,6 +347,7 @@ def _augment(data: str | Path, out: str | Path, kind: Kind, select: Any, draw: A
     """Read, draw, transform and write; `select(ds, samples)` picks the samples, `draw(n)` their draws."""
     if copies < 2:
         raise UsageError(f"--copies counts the original too, so it must be at least 2, got {copies}")
+    check_seed(seed, "--seed")
     ds = open_dataset(data)
     out = Path(out)
     if out.resolve() == ds.path.resolve():

@@ -72,6 +72,7 @@ from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import data_mismatch, open_dataset
 from ..util import tablefiles
 from ..util.atomic import atomic_directory
+from ..util.bounds import check_seed
 from ..util.claim import claim
 from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machine_description
@@ -109,6 +110,7 @@ class EvalOptions:
     rome_kde: str = KDE_EXACT
 
     def validate(self) -> None:
+        check_seed(self.seed, "--seed")
         if self.samples < 1:
             raise UsageError(f"--samples must be at least 1, got {self.samples}")
         if not 1 <= self.k <= self.samples:

@@ -69,11 +69,12 @@ from ..model.models import MODEL_CLASSES
 from ..schemas import open_dataset
 from ..util import tablefiles
 from ..util.atomic import atomic_file, atomic_write_text
+from ..util.bounds import check_seed
 from ..util.claim import claim, claims_supported
 from ..util.progress import say
 from .evaluate import EVAL_DIR, EvalOptions, evaluate
-from .runs import weights_digest
-from .train import BUDGET_KEYS, CONFIG_FILE, RUN_FILE, budget_raise, budget_size, first_difference, raise_blocker
+from .runs import CONFIG_FILE, read_run_config, read_run_info, weights_digest
+from .train import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
 
 INGESTS = ("synthetic-bimodal", "eth-ucy")
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
@@ -149,6 +150,8 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
     if ingest is not None and ingest not in INGESTS:
         raise UsageError(f"{path}: [data] ingest must be one of {', '.join(INGESTS)}, got {ingest!r}")
     _unknown(data, {"path", "ingest", *INGEST_OPTIONS.get(ingest, ())}, "[data]", path)
+    if "seed" in data:
+        check_seed(data["seed"], f"{path}: data.seed")
     models_section = _table(raw, "models", path)
     for name in models_section:
         _unknown(_table(models_section, name, path, f"models.{name}"), {"set"}, f"[models.{name}]", path)
@@ -164,7 +167,8 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
             ingest_options={k: v for k, v in data.items() if k not in ("path", "ingest")},
             models=tuple(_strings(protocol.get("models", ["trajflow"]), "protocol.models", path)),
             folds=folds if folds is None or folds == "all" else tuple(_strings(folds, "protocol.folds", path)),
-            seeds=tuple(int(s) for s in _list(protocol.get("seeds", [0]), "protocol.seeds", path)),
+            seeds=tuple(check_seed(s, f"{path}: protocol.seeds") for s in _list(protocol.get("seeds", [0]),
+                                                                                "protocol.seeds", path)),
             train_overrides=tuple(_strings(raw.get("train", {}).get("set", []), "train.set", path)),
             model_overrides={name: tuple(_strings(section.get("set", []), f"models.{name}.set", path))
                              for name, section in models_section.items()},
@@ -332,8 +336,8 @@ def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = N
     a change of the experiment's: its runs would continue to the new default.)"""
     given = [*config.train_overrides, *config.model_overrides.get(model, ())]
     budgets = load_config(overrides=[*given, f"model.name={model}"]).train
-    saved_path = None if run_dir is None else run_dir / CONFIG_FILE
-    own = load_config(saved_path).train if saved_path is not None and saved_path.is_file() else budgets
+    saved = None if run_dir is None else read_run_config(run_dir)
+    own = saved.train if saved is not None else budgets
     larger = {key: max(getattr(budgets, key), getattr(own, key), key=partial(budget_size, key))
               for key in BUDGET_KEYS}  # (a patience of 0, no early stopping, is the largest)
     return [*given, *(f"train.{key}={value}" for key, value in larger.items())]
@@ -368,12 +372,12 @@ def run_evaluated(run_dir: Path) -> bool:
     model is trained and evaluated)."""
     if not (run_dir / EVAL_DIR / "metrics.parquet").exists():
         return False
+    info = read_run_info(run_dir)
     try:
-        info = json.loads((run_dir / RUN_FILE).read_text())
         evaluation = json.loads((run_dir / EVAL_DIR / "eval.json").read_text())
     except (OSError, ValueError):
         return False
-    if info.get("status") != "finished":
+    if info is None or info.get("status") != "finished" or not isinstance(evaluation, dict):
         return False
     evaluated, current = evaluation.get("model_digest"), weights_digest(info)
     if evaluated is not None and current is not None:
@@ -387,22 +391,16 @@ def run_evaluated(run_dir: Path) -> bool:
 
 def _final_model(run_dir: Path) -> tuple[Any, Any] | None:
     """What identifies the run's final model: when it was finished and its weights' digest (run.json)."""
-    try:
-        info = json.loads((run_dir / RUN_FILE).read_text())
-    except (OSError, ValueError):
-        return None
-    return info.get("finished"), weights_digest(info)
+    info = read_run_info(run_dir)
+    return None if info is None else (info.get("finished"), weights_digest(info))
 
 
 def run_done(run_dir: Path, overrides: list[str]) -> bool:
     """Finished (see `run_evaluated`) with the config the experiment now gives it (its budgets were not raised)."""
     if not run_evaluated(run_dir):
         return False
-    saved_path = run_dir / CONFIG_FILE
-    if not saved_path.is_file():
-        return True
-    saved = load_config(saved_path)
-    return load_config(overrides=overrides, base=saved) == saved
+    saved = read_run_config(run_dir)
+    return saved is None or load_config(overrides=overrides, base=saved) == saved
 
 
 def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool, worker: str = "",
@@ -440,7 +438,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
             # stopped it: otherwise its model, and so its evaluation, stay as they are).
             model_before = _final_model(run_dir)
             train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
-                  device=device, resume=run_dir.exists(), quiet=inner_quiet)
+                  device=device, resume=(run_dir / CONFIG_FILE).is_file(), quiet=inner_quiet)
             if not run_evaluated(run_dir) or _final_model(run_dir) != model_before:
                 evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
                          quiet=inner_quiet)

@@ -88,6 +88,7 @@ import polars as pl
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..util.bounds import check_seed
 from ..util.progress import make_progress, say
 from .windows import identical_input_groups
 
@@ -567,6 +568,7 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
         raise UsageError(f"--camera must look like cam4, got {camera!r}")
     if folds < 2:
         raise UsageError(f"--folds must be at least 2, got {folds}")
+    check_seed(seed, "--seed")
     if not 0 <= val_fraction < 1:
         raise UsageError(f"val fraction must be in [0, 1), got {val_fraction}")
     if not fork_tolerance >= 0:

@@ -16,6 +16,7 @@ import polars as pl
 
 from ..errors import UsageError
 from ..schemas import PROTOCOL_TRAIN_IS_TEST, DatasetMeta, DatasetWriter
+from ..util.bounds import check_seed
 from .windows import identical_input_groups
 
 DATASET = "synthetic_bimodal"
@@ -62,6 +63,7 @@ def ingest_synthetic_bimodal(out: str | Path, *, samples: int = 3000, seed: int 
     """Generate the synthetic bimodal dataset into `out`; returns `out`."""
     if samples < 2:
         raise UsageError(f"--samples must be at least 2 (one per mode), got {samples}")
+    check_seed(seed, "--seed")
     out = Path(out)
     past, _ = base_trajectories()
     futures, mode, scale = generate(samples, seed)

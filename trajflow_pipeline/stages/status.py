@@ -37,7 +37,8 @@ from ..util import tablefiles
 from .evaluate import EVAL_DIR, ROME_CACHE_DIR
 from .experiment import (ExperimentConfig, load_experiment, plan_order, run_done, run_evaluated, run_name,
                          run_overrides)
-from .train import CONFIG_FILE, LOG_FILE, RUN_FILE
+from .runs import CONFIG_FILE, RUN_FILE, read_run_config, read_run_info
+from .train import LOG_FILE
 
 #: the epoch budget keys of each gradient stage (train.<prefix>_min_epochs, _max_epochs, _patience)
 _BUDGET_PREFIX = {"autoencoder": "ae", "flow": "flow"}
@@ -158,8 +159,11 @@ def experiment_status(out: str | Path) -> ExperimentStatus:
 def _single_run_status(run_dir: Path) -> ExperimentStatus:
     """The status of the one run in `run_dir` (a `trajflow train -o` directory), under its own saved config."""
     try:
-        info = _read_json(run_dir / RUN_FILE) or {}
-        model = str(info.get("model") or load_config(run_dir / CONFIG_FILE).model.name)
+        info = read_run_info(run_dir) or {}
+        saved = read_run_config(run_dir)
+        if not info.get("model") and saved is None:
+            raise DataError(f"neither {RUN_FILE} nor {CONFIG_FILE} says which model this run trains", run_dir)
+        model = str(info.get("model") or saved.model.name)
         fold, seed = info.get("fold"), info.get("seed")
         run = _inspect_run(run_dir, None, model, fold if isinstance(fold, str) else None,
                            seed if isinstance(seed, int) and not isinstance(seed, bool) else 0, None)
@@ -319,7 +323,7 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
                  busy: bool | None) -> RunStatus:
     """The state of the run in `run_dir` from its files and its claim (`busy`), its progress and its times, under
     the experiment `config` (None: a run of its own, under its saved config)."""
-    info = _read_json(run_dir / RUN_FILE)
+    info = read_run_info(run_dir)
     overrides = run_overrides(config, model, run_dir) if config is not None else []
     if info is None:
         state = "training" if busy else "planned"
@@ -334,14 +338,13 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
     log = _read_log(run_dir / LOG_FILE)
     progress = None
     if log is not None and log.height:
-        saved = run_dir / CONFIG_FILE
+        saved = read_run_config(run_dir)
         # The budget the run follows: a live training keeps the one it started with (its config.toml); otherwise
         # the experiment's config decides what comes next, a raised budget included.
-        if busy and state == "training" and saved.is_file():
-            budget = load_config(saved)
+        if busy and state == "training" and saved is not None:
+            budget = saved
         else:
-            budget = load_config(overrides=[*overrides, f"model.name={model}"],
-                                 base=load_config(saved) if saved.is_file() else None)
+            budget = load_config(overrides=[*overrides, f"model.name={model}"], base=saved)
         progress = _progress(log, budget, info if state not in _UNFINISHED else None)
         if state in _UNFINISHED and progress.stopped:
             progress = _next_stage(progress, budget, model)

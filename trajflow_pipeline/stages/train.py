@@ -70,8 +70,8 @@ from .. import __version__
 from .. import data as data_module
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.batch import SceneBatch
-from ..model.checkpoint import load_training_state, save_model, save_training_state
-from ..model.config import MODEL_NAMES, DataSpec, RunConfig, load_config
+from ..model.checkpoint import check_weights, load_training_state, save_model, save_training_state
+from ..model.config import MODEL_NAMES, DataSpec, RunConfig, load_config, with_values
 from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..schemas import data_mismatch
@@ -79,9 +79,8 @@ from ..util import tablefiles
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machines_after, revisions_after
+from .runs import CONFIG_FILE, FINAL_DIR, RUN_FILE, RUN_REQUIRED, read_run_config, read_run_info
 
-CONFIG_FILE = "config.toml"
-RUN_FILE = "run.json"
 LOG_FILE = "train_log.parquet"
 STATE_FILE = "checkpoints/state.pt"
 #: The training state at the last epoch of a finished gradient stage, formatted with the stage name.
@@ -99,7 +98,6 @@ BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_pa
 RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
 #: The prefix of each gradient stage's settings (train.<prefix>_max_epochs, _min_epochs, _patience).
 STAGE_PREFIX = {"autoencoder": "ae", "flow": "flow"}
-FINAL_DIR = "final"
 
 LOG_SCHEMA = {"epoch": pl.Int64, "stage": pl.String, "train_loss": pl.Float64, "val_loss": pl.Float64,
               "lr": pl.Float64, "seconds": pl.Float64, "skipped_steps": pl.Int64, "samples_per_s": pl.Float64,
@@ -119,7 +117,8 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     `model`, `seed` and `device` override the config (``model.name``, ``train.seed``, ``train.device``); the
     config is the defaults, then `config_path` (TOML), then `overrides` (``section.key=value``). With `resume`, an
     interrupted run continues from its last checkpoint (its saved config is used; options that would change it are
-    refused, except raised epoch budgets: see the module docstring) and a finished run is returned as is. With
+    refused, except raised epoch budgets: see the module docstring) and a finished run is returned as is; a
+    directory that holds no run (no config.toml) is a UsageError, not a fresh start. With
     `autoencoder_from`, a new run starts from that run's trained autoencoder and trains the flow only (see the
     module docstring). Returns `run_dir`.
     """
@@ -158,9 +157,13 @@ def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Se
     None). On resume the saved config is used; changes other than raised budgets and the device are refused."""
     if model is not None and model not in MODEL_NAMES:
         raise UsageError(f"unknown model {model!r}; choose one of {', '.join(MODEL_NAMES)}")
-    saved_path = run_dir / CONFIG_FILE
-    if resume and saved_path.is_file():
-        saved = load_config(saved_path)
+    if resume and not run_dir.is_dir():
+        raise UsageError(f"{run_dir}: no such run directory to resume; train without --resume to start a run there")
+    saved = read_run_config(run_dir) if resume else None
+    if resume and saved is None:
+        raise UsageError(f"{run_dir} holds no run to resume ({CONFIG_FILE} is missing); train without --resume to "
+                         "start one" + (" in a new directory" if any(run_dir.iterdir()) else ""))
+    if saved is not None:
         requested = _with_options(load_config(config_path, overrides, base=saved), model, seed, None)
         if requested == saved:
             return _with_options(saved, None, None, device), None
@@ -199,10 +202,9 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
     """Why the run in `run_dir` cannot take `overrides` (a config change an experiment asks for), or None when it
     can: the same config, raised budgets it can follow, or no run yet. Read from its files, without loading data
     or weights, so an experiment can check all its runs before it changes anything."""
-    saved_path = run_dir / CONFIG_FILE
-    if not saved_path.is_file():
+    saved = read_run_config(run_dir)
+    if saved is None:
         return None
-    saved = load_config(saved_path)
     requested = load_config(overrides=overrides, base=saved)
     raised = budget_raise(saved, requested)
     if raised is None:
@@ -228,23 +230,14 @@ def _trained(run_dir: Path) -> bool:
     count by their final model alone)."""
     if not (run_dir / FINAL_DIR / "model.safetensors").is_file():
         return False
-    try:
-        return json.loads((run_dir / RUN_FILE).read_text()).get("status") == "finished"
-    except FileNotFoundError:
-        return True
-    except (OSError, ValueError) as error:
-        raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
+    info = read_run_info(run_dir)
+    return info is None or info.get("status") == "finished"
 
 
 def _run_info(run_dir: Path) -> dict[str, Any]:
-    """The run's run.json ({} when it has none yet); an unreadable one is an error naming it."""
-    try:
-        info = json.loads((run_dir / RUN_FILE).read_text())
-    except FileNotFoundError:
-        return {}
-    except (OSError, ValueError) as error:
-        raise TrajflowError(f"{run_dir / RUN_FILE}: unreadable run description ({error})") from None
-    return info if isinstance(info, dict) else {}
+    """The run's run.json, checked, with every key training writes at its start (:func:`~.runs.read_run_info`;
+    {} when it has none yet)."""
+    return read_run_info(run_dir, required=RUN_REQUIRED) or {}
 
 
 def _resume_fold(run_dir: Path, fold: str | None) -> str | None:
@@ -296,24 +289,91 @@ def autoencoder_start(source: Path, config: RunConfig, data: _Data, fold: str | 
     state = load_training_state(end_path)
     if state.get("model") != config.model.name:
         raise UsageError(f"{end_path}: a {state.get('model')!r} run; this run trains {config.model.name!r}")
-    trained = RunConfig.from_dict(json.loads(state["config"]))
+    trained = state_config(end_path, state)
     flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, "device")}
     comparable = replace(trained, train=replace(trained.train, **flow_settings))
     if comparable != config:
         raise UsageError(f"{source} trained its autoencoder with other settings "
                          f"({first_difference(comparable, config)}); only train.flow_* settings may differ")
+    check_state(end_path, state, build_model(trained.model, data.spec))
     return {**state, "config": config.to_json()}
 
 
+#: What a training state (state.pt, end-<stage>.pt) holds: each key and the types its value may have.
+STATE_FIELDS: dict[str, tuple[type, ...]] = {
+    "model": (str,), "config": (str,), "stage_index": (int,), "epoch": (int,), "best_val": (float, int),
+    "best_epoch": (int,), "bad_epochs": (int,), "weights": (dict,), "best_weights": (dict, type(None)),
+    "optimizer": (dict, type(None)), "scheduler": (dict, type(None)), "log": (list,), "best": (dict,),
+    "skipped_total": (int,), "started": (str,), "selected_nll": (float, int), "selected_epoch": (int,),
+}
+#: Keys of STATE_FIELDS that states written before them lack (their defaults are read in `_progress_from`).
+_STATE_OPTIONAL = ("selected_nll", "selected_epoch")
+
+
+def read_state(path: Path, model: TrajectoryModel) -> dict[str, Any]:
+    """The training state in `path` of a run of `model`, checked (:func:`check_state`) before anything uses it."""
+    state = load_training_state(path, expected_model=model.name)
+    check_state(path, state, model)
+    return state
+
+
+def check_state(path: Path, state: dict[str, Any], model: TrajectoryModel) -> None:
+    """Refuse (DataError naming `path`) a training state that `model`'s run cannot continue from: a key missing or
+    of the wrong type, a config that does not parse, a stage the model lacks, weights that do not fit the model, a
+    log without stages or an optimizer state for other parameters than its stage trains."""
+    for key, kinds in STATE_FIELDS.items():
+        if key not in state:
+            if key in _STATE_OPTIONAL:
+                continue
+            raise DataError(f"training state lacks {key!r}", path)
+        if not isinstance(state[key], kinds) or isinstance(state[key], bool):
+            raise DataError(f"training state: {key!r} is a {type(state[key]).__name__}", path)
+    state_config(path, state)
+    if not 0 <= state["stage_index"] <= len(model.stages):
+        raise DataError(f"training state: stage {state['stage_index']} does not exist (the model has "
+                        f"{len(model.stages)})", path)
+    check_weights(path, state["weights"], model)
+    if state["best_weights"] is not None:
+        check_weights(path, state["best_weights"], model, what="best weights")
+    if not all(isinstance(row, dict) and isinstance(row.get("stage"), str) for row in state["log"]):
+        raise DataError("training state: the training log has rows without a stage", path)
+    if state["optimizer"] is not None and state["stage_index"] < len(model.stages):
+        _check_optimizer(path, state["optimizer"], model.stage_parameters(model.stages[state["stage_index"]]))
+
+
+def _check_optimizer(path: Path, saved: dict[str, Any], params: list[nn.Parameter]) -> None:
+    """Refuse an optimizer state that is not for `params` (their number, and the shapes of its moment tensors)."""
+    groups, moments = saved.get("param_groups"), saved.get("state")
+    if not isinstance(groups, list) or not isinstance(moments, dict) or not all(
+            isinstance(g, dict) and isinstance(g.get("params"), list) for g in groups):
+        raise DataError("training state: the optimizer state is damaged", path)
+    ids = [pid for group in groups for pid in group["params"]]
+    if len(ids) != len(params):
+        raise DataError(f"training state: the optimizer state is for {len(ids)} parameters, the stage trains "
+                        f"{len(params)}", path)
+    for pid, param in zip(ids, params):
+        entry = moments.get(pid, {})
+        for name, value in entry.items() if isinstance(entry, dict) else ():
+            if isinstance(value, Tensor) and value.dim() > 0 and value.shape != param.shape:
+                raise DataError(f"training state: optimizer {name} of parameter {pid} has shape {list(value.shape)},"
+                                f" not {list(param.shape)}", path)
+
+
+def state_config(path: Path, state: dict[str, Any]) -> RunConfig:
+    """The config a training state carries (its "config", JSON); a damaged one is a DataError naming `path`."""
+    try:
+        return RunConfig.from_dict(json.loads(state["config"]))
+    except (KeyError, TypeError, ValueError, TrajflowError) as error:
+        raise DataError(f"training state: its config is damaged ({error})", path) from None
+
+
 def _with_options(config: RunConfig, model: str | None, seed: int | None, device: str | None) -> RunConfig:
-    if model is not None:
-        config = replace(config, model=replace(config.model, name=model))
-    train_cfg = config.train
-    if seed is not None:
-        train_cfg = replace(train_cfg, seed=int(seed))
-    if device is not None:
-        train_cfg = replace(train_cfg, device=device)
-    return replace(config, train=train_cfg).validate()
+    """`config` with the options that override it (--model, --seed, --device), each checked as a setting is."""
+    for option, key, value in (("--model", "model.name", model), ("--seed", "train.seed", seed),
+                               ("--device", "train.device", device)):
+        if value is not None:
+            config = with_values(config, {key: value}, source=option)
+    return config.validate()
 
 
 def first_difference(a: RunConfig, b: RunConfig) -> str:
@@ -524,7 +584,7 @@ class _Session:
                 self._write_run_info("training")
                 save_training_state(state_path, start)
         elif resume and state_path.is_file():
-            state = load_training_state(state_path, expected_model=self.model.name)
+            state = read_state(state_path, self.model)
             state, reopened, adopted = self._follow_budget(state)
             if state is None:
                 return  # finished, and no stage a raised budget limits was stopped by its old one
@@ -775,7 +835,7 @@ class _Session:
         A config that raises the budgets of the checkpoint's moves the run to them (`_reopen`). A checkpoint that
         raises the config's is an earlier raise whose config.toml was not yet written: the run goes on with it.
         Any other difference is an error."""
-        trained = RunConfig.from_dict(json.loads(state["config"]))
+        trained = state_config(self.run_dir / STATE_FILE, state)
         device = self.config.train.device
         if replace(trained, train=replace(trained.train, device=device)) == self.config:
             return state, False, False
@@ -820,7 +880,7 @@ class _Session:
                 raise UsageError(f"{self.run_dir}: its {stage} stage finished before trajflow kept stage-end states "
                                  f"({end_path.name} is missing), so it cannot continue with {change}; train into a "
                                  f"new directory")
-            end = load_training_state(end_path, expected_model=self.model.name)
+            end = read_state(end_path, self.model)
             progress = _progress_from(end)
             if progress.epoch >= new_max or _should_stop(progress, new_min, new_patience):
                 self._say(f"{stage} would have stopped at its last epoch ({epochs}) with {change} too: nothing "
