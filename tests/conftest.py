@@ -11,6 +11,18 @@ import torch
 # Tests run on 2-core CI machines: keep torch from oversubscribing them.
 torch.set_num_threads(1)
 
+# The fuzz suite (tests/test_fuzz.py): a fixed seed and few examples by default (CI); `pytest
+# --hypothesis-profile long tests/test_fuzz.py` for a longer local search.
+try:
+    from hypothesis import HealthCheck, settings
+except ImportError:  # the dev extra installs it; without it test_fuzz.py skips
+    pass
+else:
+    _FUZZ = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+    settings.register_profile("ci", max_examples=30, derandomize=True, database=None, **_FUZZ)
+    settings.register_profile("long", max_examples=1000, **_FUZZ)
+    settings.load_profile("ci")
+
 
 def _data_root() -> Path | None:
     root = os.environ.get("TRAJFLOW_DATA")
