@@ -364,3 +364,27 @@ def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) ->
     assert not state("training", "a", "a", later)        # a raised budget is being trained
     assert state("finished", "b", None, later)           # an old evaluation made after the model was finished
     assert not state("finished", "b", None, earlier)     # ... or before it: stale
+
+
+def test_eval_refuses_weights_that_are_not_the_runs_and_records_what_it_evaluated(tiny_run: Path,
+                                                                                  tmp_path: Path) -> None:
+    """A final model replaced after training is not scored as the run's: eval checks the weights it loads against
+    run.json's digest, and eval.json records the digest of the weights it evaluated."""
+    import torch
+
+    from trajflow_pipeline.model.checkpoint import load_model, model_digest, save_model
+
+    run = Path(shutil.copytree(tiny_run, tmp_path / "run", ignore=shutil.ignore_patterns("eval")))
+    weights = run / "final" / "model.safetensors"
+    model = load_model(weights)
+    recorded = json.loads((run / "run.json").read_text())["rank_weight_digests"][0]
+    assert model_digest(model) == recorded
+    with torch.no_grad():
+        next(model.parameters()).add_(1e-3)
+    save_model(model, weights)
+    result = CliRunner().invoke(app, ["eval", str(run), "--samples", "12", "--k", "5", "--workers", "1", "--quiet"])
+    assert result.exit_code == 1, result.output
+    assert result.output.strip().startswith(f"error: {weights}: the weights are not the ones this run trained")
+    assert len(result.output.strip().splitlines()) == 1 and not (run / "eval").exists()
+    out = evaluate(run, options=FAST, quiet=True, force=True)
+    assert json.loads((out / "eval.json").read_text())["model_digest"] == model_digest(model) != recorded

@@ -227,3 +227,40 @@ def test_malformed_csv_is_refused_in_one_line(tmp_path_factory: pytest.TempPathF
     if result.exit_code != 0:
         assert snapshot(folder) == before
     assert sorted(os.listdir(folder)) == (["out", "tracks.csv"] if result.exit_code == 0 else ["tracks.csv"])
+
+
+# --- run.json ----------------------------------------------------------------------------------------------
+
+TINY_RUN = ["train.ae_max_epochs=1", "train.ae_min_epochs=1", "train.flow_max_epochs=1", "train.flow_min_epochs=1",
+            "model.flow_layers=2", "model.flow_hidden=[8]"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+    from trajflow_pipeline.stages.train import train
+
+    data = ingest_synthetic_bimodal(tmp_path_factory.mktemp("data") / "bimodal", samples=40, seed=1, quiet=True)
+    return train(data, tmp_path_factory.mktemp("runs") / "run", model="trajflow", overrides=TINY_RUN, quiet=True)
+
+
+def test_damaged_run_descriptions_are_refused_in_one_line(tiny_run: Path) -> None:
+    """run.json variants through eval (distances only, so that a variant that still describes the run is cheap to
+    evaluate) and status: a clean result, or one line naming a file of the run."""
+    description = tiny_run / "run.json"
+    valid_bytes = description.read_bytes()
+    weights = snapshot(tiny_run / "final")
+
+    @given(manifest_variants(json.loads(valid_bytes)))
+    def check(variant: bytes) -> None:
+        description.write_bytes(variant)
+        try:
+            assert_clean(invoke("eval", tiny_run, "--metric", "min_ade", "--samples", "4", "--k", "2", "--workers",
+                                "1", "--quiet"), names=tiny_run)
+            assert_clean(invoke("status", tiny_run), names=tiny_run)
+        finally:
+            description.write_bytes(valid_bytes)
+            shutil.rmtree(tiny_run / "eval", ignore_errors=True)
+        assert snapshot(tiny_run / "final") == weights
+
+    check()

@@ -200,7 +200,7 @@ def test_a_damaged_run_json_is_one_line_naming_it(data: Path, run: Path, name: s
     code, lines = invoke("status", str(run))
     assert code == 0
     if not name.startswith("no "):  # status shows what a run.json without some keys says; the others are damage
-        assert any(line.startswith(f"run: {run / 'run.json'}: ") for line in lines), lines
+        assert any(line.startswith(f"run: {run / 'run.json'}:") for line in lines), lines
 
 
 @pytest.mark.parametrize("damage", CONFIG_TOML.values(), ids=CONFIG_TOML.keys())
@@ -211,7 +211,7 @@ def test_a_damaged_config_toml_is_one_line_naming_it(data: Path, run: Path, dama
         assert code == 1, (args, lines)
         one_error(lines, str(run / "config.toml"))
     code, lines = invoke("status", str(run))
-    assert code == 0 and any(line.startswith(f"run: {run / 'config.toml'}: ") for line in lines), lines
+    assert code == 0 and any(line.startswith(f"run: {run / 'config.toml'}:") for line in lines), lines
 
 
 @pytest.mark.parametrize("damage", STATE_PT.values(), ids=STATE_PT.keys())

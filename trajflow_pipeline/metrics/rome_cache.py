@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import TrajflowError
+from ..util import input_files
 from ..util.atomic import atomic_file
 
 #: one finished task: its index, its log-density arrays (one per query) and its count of PCA retries
@@ -104,8 +106,8 @@ def saved_fits(root: Path) -> tuple[int, int] | None:
         except Exception:  # noqa: BLE001 - a damaged part counts as not saved
             continue
     try:
-        tasks = int(json.loads((newest / MANIFEST).read_text())["tasks"])
-    except (OSError, ValueError, KeyError, TypeError):
+        tasks = int(json.loads(input_files.read_text(newest / MANIFEST))["tasks"])
+    except (TrajflowError, OSError, ValueError, KeyError, TypeError):
         return None
     return len(indices), tasks
 

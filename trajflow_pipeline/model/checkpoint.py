@@ -14,6 +14,7 @@ describes, are refused with a one-line :class:`DataError` naming the file.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 from pathlib import Path
@@ -176,3 +177,12 @@ def _short(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
+
+def model_digest(model: torch.nn.Module) -> str:
+    """sha256 over a model's state (each entry's name and bytes, in name order): run.json records it of the final
+    weights, and evaluation checks the weights it loads against it and records it of what it evaluated."""
+    digest = hashlib.sha256()
+    for name, value in sorted(model.state_dict().items()):
+        digest.update(name.encode())
+        digest.update(value.detach().to("cpu").contiguous().numpy().tobytes())
+    return digest.hexdigest()

@@ -20,7 +20,8 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from ..errors import UsageError
+from ..errors import DataError, UsageError
+from ..util import input_files
 from ..util.bounds import SEED, bounded, check_value
 
 #: Model families selectable with ``--model``; see :mod:`trajflow_pipeline.model.models`.
@@ -229,11 +230,13 @@ def load_config(path: str | Path | None = None, overrides: typing.Sequence[str] 
     config = base if base is not None else RunConfig()
     if path is not None:
         path = Path(path)
+        if not path.exists():
+            raise UsageError(f"{path}: config file not found")
         try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise UsageError(f"{path}: config file not found") from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            data = tomllib.loads(input_files.read_text(path))
+        except DataError as exc:  # not a regular file, or not UTF-8: a bad config file is a usage error here
+            raise UsageError(str(exc)) from None
+        except tomllib.TOMLDecodeError as exc:
             raise UsageError(f"{path}: not valid TOML ({exc})") from None
         merged = config.to_dict()
         unknown = sorted(set(data) - set(merged))

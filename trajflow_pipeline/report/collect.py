@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import polars as pl
 
 from ..errors import DataError, TrajflowError
-from ..util import tablefiles
+from ..util import input_files
 from .paper import UNBOUNDED_PREFIX, model_label, model_order
 
 EVAL_DIR = "eval"
@@ -121,10 +121,8 @@ def _check_run_dir(path: Path) -> None:
 def read_json(path: Path) -> dict[str, Any]:
     """A JSON object from `path`, or a DataError naming the file."""
     try:
-        value = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DataError("file not found", path) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        value = json.loads(input_files.read_text(path))
+    except (OSError, json.JSONDecodeError) as error:
         raise DataError(f"not valid JSON ({error})", path) from None
     if not isinstance(value, dict):
         raise DataError("expected a JSON object", path)
@@ -251,7 +249,7 @@ def scan_table(path: Path, columns: dict[str, str], optional: dict[str, str] | N
     if not path.is_file():
         raise DataError(f"{what} not found; run `trajflow eval` again", path)
     try:
-        frame = tablefiles.scan_parquet(path)
+        frame = input_files.scan_parquet(path)
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable {what} ({error})", path) from None
     return _conform(frame, path, columns, optional, what)
@@ -320,8 +318,8 @@ def _scan_train_log(run: Run) -> tuple[pl.LazyFrame, Path] | None:
         if not path.is_file():
             continue
         try:
-            frame = (tablefiles.scan_csv(path, schema_overrides=_CSV_LOG_TYPES) if path.suffix == ".csv"
-                     else tablefiles.scan_parquet(path))
+            frame = (input_files.scan_csv(path, schema_overrides=_CSV_LOG_TYPES) if path.suffix == ".csv"
+                     else input_files.scan_parquet(path))
         except (pl.exceptions.PolarsError, OSError) as error:
             raise DataError(f"unreadable training log ({error})", path) from None
         return _conform(frame, path, TRAIN_LOG_COLUMNS, TRAIN_LOG_OPTIONAL, what="training log"), path

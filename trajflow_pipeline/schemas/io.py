@@ -27,7 +27,7 @@ import pyarrow.parquet as pq
 
 from .. import __version__
 from ..errors import DataError, TrajflowError
-from ..util import tablefiles
+from ..util import input_files
 from ..util.atomic import atomic_directory, atomic_write_text, recover
 from .tables import (META_DATASET, META_DT, META_PROTOCOL, META_SCHEMA_VERSION, META_TABLE, META_VERSION,
                      PROTOCOLS, SAMPLES, SCENES, SCHEMA_VERSION, TRACKS, TableSpec, conform)
@@ -152,7 +152,7 @@ def check_output_path(out: Path, dataset: str, *, overwrite: bool) -> None:
         raise TrajflowError(f"{out}: output directory is not empty and holds no trajflow dataset; "
                             "choose another path or pass --overwrite")
     try:
-        existing = json.loads(tablefiles.read_text(manifest)).get("dataset")
+        existing = json.loads(input_files.read_text(manifest)).get("dataset")
     except (TrajflowError, OSError, json.JSONDecodeError, AttributeError):  # unreadable, or not a JSON object
         existing = None
     if existing != dataset:
@@ -165,7 +165,7 @@ def _read_parquet(path: Path, spec: TableSpec) -> tuple[pl.DataFrame, dict[str, 
     if not path.exists():
         raise DataError(f"{spec.name} table is missing", path=path)
     try:
-        table = pq.read_table(tablefiles.regular_file(path))
+        table = pq.read_table(input_files.regular_file(path))
     except (pa.ArrowException, OSError) as error:
         raise DataError(f"cannot read Parquet file ({error})", path=path) from None
     metadata = {k.decode(errors="replace"): v.decode(errors="replace")
@@ -249,7 +249,7 @@ class Dataset:
                         if k.startswith(b"trajflow.")}
             self._check_metadata(shard, metadata, TRACKS.name)
             validate_columns(pl.Schema(pl.from_arrow(schema.empty_table()).schema), TRACKS, shard)
-        return tablefiles.scan_parquet(shards)
+        return input_files.scan_parquet(shards)
 
     def map_file(self, relative: str, scene: str | None = None) -> Path:
         """The raster file a scenes row's `map_path` names, checked to lie inside the dataset directory once links
@@ -262,12 +262,12 @@ class Dataset:
         if not path.resolve().is_relative_to(self.path.resolve()):
             raise DataError(f"map raster{of_scene} leads outside the dataset directory (to {path.resolve()})",
                             path=path)
-        return tablefiles.regular_file(path)
+        return input_files.regular_file(path)
 
     def fingerprint(self) -> dict[str, str]:
         """Identifies the data a run was trained on: path, manifest metadata, a hash of the manifest and one of
         the manifest less the places its inputs lay (``data_sha256``: the same for a copy ingested elsewhere)."""
-        manifest = tablefiles.read_bytes(self.path / MANIFEST)
+        manifest = input_files.read_bytes(self.path / MANIFEST)
         placeless = json.dumps(_without_locations(json.loads(manifest)), sort_keys=True).encode()
         return {"path": str(self.path.resolve()), "dataset": self.meta.dataset, "dt": repr(self.meta.dt),
                 "protocol": self.meta.protocol, "schema_version": str(self.meta.schema_version),
@@ -308,7 +308,7 @@ def open_dataset(path: str | Path) -> Dataset:
     if not manifest_path.exists():
         raise DataError(f"not a trajflow dataset ({MANIFEST} is missing)", path=path)
     try:
-        manifest = json.loads(tablefiles.read_text(manifest_path))
+        manifest = json.loads(input_files.read_text(manifest_path))
         meta = DatasetMeta(dataset=str(manifest["dataset"]), dt=float(manifest["dt"]),
                            protocol=str(manifest["protocol"]), schema_version=int(manifest["schema_version"]),
                            version=str(manifest["version"]))

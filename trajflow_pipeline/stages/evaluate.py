@@ -63,14 +63,15 @@ import torch
 
 from .. import __version__
 from ..data import Problems, build_problems, select_samples
-from ..errors import TrajflowError, UsageError
+from ..errors import DataError, TrajflowError, UsageError
 from ..metrics import METRIC_NAMES, RomeTally, check_metric_names, compute_metrics, jsd_groups
 from ..metrics.compute import SCHEMA, metric_rows
 from ..metrics.inputs import group_agents, group_minimum
 from ..metrics.rome import KDE_CHOICES, KDE_EXACT
+from ..model.checkpoint import model_digest
 from ..model.models import CV_EXTENSION, TrajectoryModel
 from ..schemas import data_mismatch, open_dataset
-from ..util import tablefiles
+from ..util import input_files
 from ..util.atomic import atomic_directory
 from ..util.bounds import check_seed
 from ..util.claim import claim
@@ -386,6 +387,17 @@ def _check_fingerprint(run: RunInfo, given: dict[str, str], force: bool) -> None
                             "pass --force to evaluate anyway")
 
 
+def _check_weights_digest(run: RunInfo, model: TrajectoryModel, force: bool) -> str:
+    """The digest of the weights about to be evaluated, refused (unless forced) when run.json recorded another:
+    a final model replaced or changed after training would otherwise be scored, and filed, as this run's."""
+    digest = model_digest(model)
+    if run.weights_digest is not None and digest != run.weights_digest and not force:
+        raise DataError(f"the weights are not the ones this run trained (digest {digest[:12]}, run.json records "
+                        f"{run.weights_digest[:12]}): the file was replaced or changed after training; restore it, "
+                        "retrain, or pass --force to evaluate them anyway", path=run.model_file)
+    return digest
+
+
 def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: EvalOptions | None = None,
              device: str = "auto", force: bool = False, quiet: bool = False) -> Path:
     """Evaluate the run in `run_dir` on the test split of its fold; returns the eval directory."""
@@ -415,6 +427,7 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
     problems = build_problems(ds, selection, extended=options.extended_horizon)
     torch_device = _device(device)
     model = run.load_model(torch_device)
+    digest = _check_weights_digest(run, model, force)
     horizon = plan_horizon(options, problems, model)
     warnings = horizon_warnings(horizon, "n_future_max" in selection.columns)
     for warning in warnings:
@@ -436,7 +449,7 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
         "training_code_revisions": run.code_revisions, "machine": machine_description(str(torch_device)),
         "training_machines": run.machines,
         "data_fingerprint": problems.fingerprint, "config": run.config,
-        "model_digest": run.weights_digest,
+        "model_digest": digest,
         "log_lik_label": model.log_lik_space, "horizon": horizon.record(), "warnings": warnings,
         "rome_fits": fallbacks.fits, "rome_fallback_fits": fallbacks.fallback_fits,
         "rome_fits_resumed": fallbacks.resumed + fallbacks_ext.resumed,
@@ -467,7 +480,7 @@ def _group_counts(problems: Problems, steps: int, metrics: tuple[str, ...]) -> d
 
 def aggregate_metrics(eval_dir: str | Path) -> dict[str, float]:
     """metric -> value of the aggregate rows of an eval directory's metrics table."""
-    table = tablefiles.read_parquet(Path(eval_dir) / "metrics.parquet").filter(pl.col("aggregate"))
+    table = input_files.read_parquet(Path(eval_dir) / "metrics.parquet").filter(pl.col("aggregate"))
     return dict(table.select("metric", "value").iter_rows())
 
 

@@ -67,7 +67,7 @@ from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, RunConfig, load_config
 from ..model.models import MODEL_CLASSES
 from ..schemas import open_dataset
-from ..util import tablefiles
+from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.bounds import check_seed
 from ..util.claim import claim, claims_supported
@@ -131,10 +131,10 @@ def _unknown(section: dict[str, Any], allowed: set[str], where: str, path: Path)
 def load_experiment(path: str | Path) -> ExperimentConfig:
     """Read and check an experiment config file (unknown keys are errors that name them)."""
     path = Path(path)
+    if not path.exists():
+        raise UsageError(f"{path}: experiment config not found")
     try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise UsageError(f"{path}: experiment config not found") from None
+        raw = tomllib.loads(input_files.read_text(path))
     except tomllib.TOMLDecodeError as error:
         raise UsageError(f"{path}: not valid TOML ({error})") from None
     _unknown(raw, _TOP_KEYS, "the top level", path)
@@ -243,8 +243,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
         raise UsageError("--jobs needs POSIX file locks (fcntl), which this platform lacks: use --jobs 1")
     config = load_experiment(config_path)
     out = Path(out)
-    text = Path(config_path).read_text()
-    changed = (out / "config.toml").exists() and (out / "config.toml").read_text() != text
+    text = input_files.read_text(config_path)
+    changed = (out / "config.toml").exists() and input_files.read_text(out / "config.toml") != text
     if changed:
         _check_budgets_only(out / "config.toml", config, quiet)
     data = _ensure_data(config, quiet)
@@ -374,8 +374,8 @@ def run_evaluated(run_dir: Path) -> bool:
         return False
     info = read_run_info(run_dir)
     try:
-        evaluation = json.loads((run_dir / EVAL_DIR / "eval.json").read_text())
-    except (OSError, ValueError):
+        evaluation = json.loads(input_files.read_text(run_dir / EVAL_DIR / "eval.json"))
+    except (TrajflowError, OSError, ValueError):
         return False
     if info is None or info.get("status") != "finished" or not isinstance(evaluation, dict):
         return False
@@ -507,7 +507,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
     with claim(out / ".index.lock", wait=True):
         finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r))]
         if finished:
-            metrics = pl.concat([tablefiles.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
+            metrics = pl.concat([input_files.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
                                 how="vertical_relaxed")
             with atomic_file(out / "metrics.parquet") as tmp:
                 metrics.write_parquet(tmp)

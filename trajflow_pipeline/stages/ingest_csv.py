@@ -33,7 +33,7 @@ import polars as pl
 from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, PROTOCOL_TRAIN_IS_TEST, PROTOCOLS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
-from ..util import tablefiles
+from ..util import input_files
 from .ingest_forking_paths import assign_folds
 from .textfile import csv_record_line, csv_records, in_range, range_problem
 from .windows import complete_windows, identical_input_groups
@@ -135,12 +135,12 @@ def _read_strings(path: Path) -> pl.DataFrame:
         raise DataError("input file not found", path=path)
     if path.suffix.lower() in (".parquet", ".pq"):
         try:
-            frame = tablefiles.read_parquet(path)
+            frame = input_files.read_parquet(path)
         except Exception as error:  # polars raises several unrelated types for unreadable files
             raise DataError(f"cannot read Parquet file ({error})", path=path) from None
         return frame.with_columns(pl.all().cast(pl.String))
     try:
-        frame = tablefiles.read_csv(path, infer_schema=False)
+        frame = input_files.read_csv(path, infer_schema=False)
     except (pl.exceptions.ComputeError, pl.exceptions.NoDataError) as error:
         raise _locate_csv_error(path, error) from None
     return frame

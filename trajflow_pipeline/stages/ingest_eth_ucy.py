@@ -18,6 +18,7 @@ import polars as pl
 
 from ..errors import DataError, TrajflowError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..util import input_files
 from ..util.progress import make_progress
 from .textfile import read_numeric_tables
 from .windows import complete_windows, identical_input_groups
@@ -163,7 +164,7 @@ def _raise_line_problem(problem: dict, lines: pl.DataFrame, paths: list[Path]) -
 def _val_start_raw_frame(source: SequenceSource) -> int:
     if source.val_file is None:
         return source.val_start_raw_frame
-    with open(source.val_file, encoding="utf-8") as handle:
+    with open(input_files.regular_file(source.val_file), encoding="utf-8") as handle:
         for number, line in enumerate(handle, start=1):
             if line.strip():
                 try:

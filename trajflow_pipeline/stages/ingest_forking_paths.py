@@ -88,6 +88,7 @@ import polars as pl
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
+from ..util import input_files
 from ..util.bounds import check_seed
 from ..util.progress import make_progress, say
 from .windows import identical_input_groups
@@ -352,7 +353,7 @@ def read_bbox_file(item: BboxFile) -> pl.DataFrame:
     to name the offending line or record.
     """
     path = item.path
-    data = path.read_bytes()
+    data = input_files.read_bytes(path)
     frame: pl.DataFrame | None = None
     if data.lstrip()[:1] == b"[":
         try:

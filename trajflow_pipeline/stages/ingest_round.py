@@ -75,7 +75,7 @@ from PIL import Image, UnidentifiedImageError
 
 from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
-from ..util import tablefiles
+from ..util import input_files
 from ..util.progress import make_progress, say
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
 from .windows import GROUP_TOLERANCE_M, _window_hashes
@@ -236,7 +236,7 @@ def _recording_number(value: int | str) -> int:
 
 def _header(path: Path) -> list[str]:
     try:
-        return tablefiles.read_csv(path, n_rows=0).columns
+        return input_files.read_csv(path, n_rows=0).columns
     except pl.exceptions.NoDataError:
         raise DataError("file is empty", path=path) from None
     except (pl.exceptions.PolarsError, OSError) as error:
@@ -254,7 +254,7 @@ def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFram
     if missing:
         raise DataError(f"missing column(s) {', '.join(missing)}; found {', '.join(header)}", path=path)
     try:
-        frame = tablefiles.read_csv(path, columns=list(columns), schema_overrides=columns)
+        frame = input_files.read_csv(path, columns=list(columns), schema_overrides=columns)
     except (pl.exceptions.PolarsError, OSError):
         raise _locate_bad_cell(path, columns) from None
     frame = frame.select(list(columns)).with_row_index("__row")
@@ -272,7 +272,7 @@ def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFram
 def _locate_bad_cell(path: Path, columns: dict[str, pl.DataType]) -> DataError:
     """Find the first cell that does not parse as its column's type (the slow path, only after a failure)."""
     try:
-        text = tablefiles.read_csv(path, columns=list(columns), infer_schema=False)
+        text = input_files.read_csv(path, columns=list(columns), infer_schema=False)
     except (pl.exceptions.PolarsError, OSError) as error:
         return DataError(f"cannot parse CSV ({str(error).splitlines()[0]})", path=path)
     for name, dtype in columns.items():
@@ -386,7 +386,7 @@ def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks
     the scene's map columns. Warns when the tracks do not fall on the image under the levelX convention."""
     path = recording.path("background.png")
     try:
-        with Image.open(path) as image:
+        with Image.open(input_files.regular_file(path)) as image:
             grey = image.convert("L")
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as error:
         raise DataError(f"cannot open the background image ({error})", path=path) from None

@@ -34,6 +34,7 @@ import numpy as np
 import polars as pl
 
 from ..errors import DataError, UsageError
+from ..util import input_files
 
 #: positions of vehicles slower than this (m/s) carry no usable course or curvature
 MIN_SPEED = 2.0
@@ -140,7 +141,7 @@ def load_geometry_file(path: str | Path) -> GeometryConfig:
     """Read a JSON geometry file: one geometry object, or an object mapping locationId -> geometry object."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(input_files.read_text(path))
     except OSError as error:
         raise UsageError(f"{path}: cannot read geometry file ({error.strerror})") from None
     except json.JSONDecodeError as error:

@@ -14,9 +14,10 @@ from typing import Any
 import torch
 
 from ..errors import DataError, TrajflowError, UsageError
-from ..model.checkpoint import load_model
+from ..model.checkpoint import MODEL_FILE, load_model
 from ..model.config import RunConfig, load_config
 from ..model.models import TrajectoryModel
+from ..util import input_files
 
 CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
@@ -41,13 +42,10 @@ def read_run_info(run_dir: str | Path, required: tuple[str, ...] = ()) -> dict[s
     type and the `required` keys present: anything else (not UTF-8, not JSON, not an object, a wrong type) is a
     DataError naming the file."""
     path = Path(run_dir) / RUN_FILE
-    try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
+    if not path.exists():
         return None
-    except UnicodeDecodeError as error:
-        raise DataError(f"unreadable run description: not UTF-8 text ({error.reason} at byte {error.start})",
-                        path) from None
+    try:
+        info = json.loads(input_files.read_text(path))
     except ValueError as error:
         raise DataError(f"unreadable run description: not valid JSON ({error})", path) from None
     except OSError as error:
@@ -79,8 +77,8 @@ def read_run_config(run_dir: str | Path) -> RunConfig | None:
         return None
     try:
         return load_config(path)
-    except UsageError as error:
-        raise DataError(str(error).removeprefix(f"{path}: "), path) from None
+    except UsageError as error:  # its message already starts with the file (and line, where it applies)
+        raise DataError(str(error)) from None
     except OSError as error:
         raise DataError(f"unreadable ({error.strerror or error})", path) from None
 
@@ -112,6 +110,11 @@ class RunInfo:
     @property
     def name(self) -> str:
         return self.path.resolve().name
+
+    @property
+    def model_file(self) -> Path:
+        """The final model's weights file."""
+        return self.path / FINAL_DIR / MODEL_FILE
 
     def load_model(self, device: torch.device | str = "cpu") -> TrajectoryModel:
         """The final model of the run, checked to be of the run's model family."""

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ from ..errors import DataError, TrajflowError, UsageError
 from ..model.config import RunConfig, load_config
 from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
-from ..util import tablefiles
+from ..util import input_files
 from .evaluate import EVAL_DIR, ROME_CACHE_DIR
 from .experiment import (ExperimentConfig, load_experiment, plan_order, run_done, run_evaluated, run_name,
                          run_overrides)
@@ -197,8 +196,8 @@ def _planned(out: Path, config: ExperimentConfig) -> tuple[list[tuple[str, str |
 def _index(out: Path) -> dict[str, Any]:
     """The experiment's index (experiment.json) as far as it is readable; {} before the first run is done."""
     try:
-        index = json.loads((out / "experiment.json").read_text())
-    except (OSError, ValueError):
+        index = json.loads(input_files.read_text(out / "experiment.json"))
+    except (TrajflowError, OSError, ValueError):
         return {}
     return index if isinstance(index, dict) else {}
 
@@ -361,10 +360,10 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
 
 def _read_json(path: Path) -> dict[str, Any] | None:
     """A JSON object file, None when it is missing; anything else is a DataError naming it."""
-    try:
-        value = json.loads(path.read_text())
-    except FileNotFoundError:
+    if not path.exists():
         return None
+    try:
+        value = json.loads(input_files.read_text(path))
     except (OSError, ValueError) as error:
         raise DataError(f"unreadable ({error})", path) from None
     if not isinstance(value, dict):
@@ -377,7 +376,7 @@ def _read_log(path: Path) -> pl.DataFrame | None:
     if not path.is_file():
         return None
     try:
-        return tablefiles.read_parquet(path, columns=["epoch", "stage", "val_loss", "seconds"])
+        return input_files.read_parquet(path, columns=["epoch", "stage", "val_loss", "seconds"])
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable training log ({error})", path) from None
 
@@ -419,7 +418,7 @@ def _aggregates(run_dir: Path) -> dict[str, float]:
     """The evaluated run's aggregate metrics (metric -> mean)."""
     path = run_dir / EVAL_DIR / "metrics.parquet"
     try:
-        table = tablefiles.read_parquet(path, columns=["metric", "value", "aggregate"]).filter(pl.col("aggregate"))
+        table = input_files.read_parquet(path, columns=["metric", "value", "aggregate"]).filter(pl.col("aggregate"))
     except (pl.exceptions.PolarsError, OSError) as error:
         raise DataError(f"unreadable metrics ({error})", path) from None
     return {str(metric): float(value) for metric, value in table.select("metric", "value").iter_rows()

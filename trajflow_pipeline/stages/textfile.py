@@ -13,6 +13,7 @@ import numpy as np
 import polars as pl
 
 from ..errors import DataError
+from ..util import input_files
 
 #: The largest magnitude an input number may have. Integers up to it are exact in float64 (frames, ids, times on a
 #: grid); coordinates up to it stay finite in the float32 tensors models train on and fit the Int64 grid on which
@@ -46,7 +47,7 @@ def _csv_lines(path: Path) -> Iterator[str]:
     """The lines of a CSV file for the csv module, numbered as :func:`split_lines` numbers them. A \\r that does
     not end a line is field content (as polars reads it) and is passed on as a space: the csv module would end a
     record there."""
-    with open(path, "rb") as handle:
+    with open(input_files.regular_file(path), "rb") as handle:
         for raw in handle:  # binary files iterate on \n only
             text = raw.decode("utf-8", errors="replace")
             if text.endswith("\r\n"):
@@ -85,7 +86,7 @@ def read_numeric_table(path: Path, columns: tuple[str, ...]) -> pl.DataFrame:
     offending line.
     """
     try:
-        text = path.read_bytes().decode("utf-8")  # not read_text: its universal newlines end a line at a lone \r
+        text = input_files.read_bytes(path).decode("utf-8")  # not read_text: universal newlines end lines at \r
     except UnicodeDecodeError as error:
         raise DataError(f"not a text file ({error.reason} at byte {error.start})", path=path) from None
     except OSError as error:
@@ -130,7 +131,7 @@ def read_numeric_tables(paths: Sequence[Path], columns: tuple[str, ...]) -> pl.D
 
 def _read_bytes(path: Path) -> bytes:
     try:
-        return path.read_bytes()
+        return input_files.read_bytes(path)
     except OSError as error:
         raise DataError(f"cannot read file ({error.strerror})", path=path) from None
 

@@ -70,12 +70,13 @@ from .. import __version__
 from .. import data as data_module
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.batch import SceneBatch
-from ..model.checkpoint import check_weights, load_training_state, save_model, save_training_state
+from ..model.checkpoint import (check_weights, load_training_state, model_digest, save_model,
+                                save_training_state)
 from ..model.config import MODEL_NAMES, DataSpec, RunConfig, load_config, with_values
 from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..schemas import data_mismatch
-from ..util import tablefiles
+from ..util import input_files
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machines_after, revisions_after
@@ -209,7 +210,7 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
     raised = budget_raise(saved, requested)
     if raised is None:
         return f"{run_dir}: {first_difference(saved, requested)} (only epoch budgets may be raised)"
-    log = tablefiles.read_parquet(run_dir / LOG_FILE) if (run_dir / LOG_FILE).is_file() else pl.DataFrame(schema=LOG_SCHEMA)
+    log = input_files.read_parquet(run_dir / LOG_FILE) if (run_dir / LOG_FILE).is_file() else pl.DataFrame(schema=LOG_SCHEMA)
     stages = log.get_column("stage").to_list()
     for key, (old_value, _) in raised.items():
         stage = BUDGET_KEYS[key]
@@ -912,7 +913,7 @@ class _Session:
         return int(state["stage_index"]), progress
 
     def _finish(self) -> None:
-        digest = _weights_digest(self.model)
+        digest = model_digest(self.model)
         digests = self.dist.gather(digest)
         if self.writer:
             info_extra = {"rank_weight_digests": digests, "ranks_consistent": len(set(digests)) == 1}
@@ -1040,10 +1041,3 @@ def _should_stop(progress: _StageProgress, min_epochs: int, patience: int) -> bo
 def _copy_weights(model: nn.Module) -> dict[str, Tensor]:
     return {name: value.detach().to("cpu", copy=True) for name, value in model.state_dict().items()}
 
-
-def _weights_digest(model: nn.Module) -> str:
-    digest = hashlib.sha256()
-    for name, value in sorted(model.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(value.detach().to("cpu").contiguous().numpy().tobytes())
-    return digest.hexdigest()
