@@ -86,7 +86,11 @@ def test_cells_that_are_not_numbers(raw: Path, tmp_path: Path) -> None:
     write_gap_recordings(raw, 1)
     edit_lines(path, lambda lines: [*lines[:bad - 1], ",".join(v if i != 5 else "" for i, v in
                                                                enumerate(lines[bad - 1].split(","))), *lines[bad:]])
-    fails(raw, tmp_path / "out", f"00_tracks.csv:{bad}: column 'yCenter' is empty or not a finite number")
+    fails(raw, tmp_path / "out", f"00_tracks.csv:{bad}: column 'yCenter' is empty")
+    write_gap_recordings(raw, 1)
+    edit_lines(path, lambda lines: [*lines[:bad - 1], ",".join(v if i != 5 else "1e300" for i, v in
+                                                               enumerate(lines[bad - 1].split(","))), *lines[bad:]])
+    fails(raw, tmp_path / "out", f"00_tracks.csv:{bad}: column 'yCenter' is beyond the largest magnitude accepted")
     write_gap_recordings(raw, 1)
     edit_lines(raw / "00_tracksMeta.csv", lambda lines: [lines[0], lines[1].replace(",1,", ",1.5,", 1), *lines[2:]])
     fails(raw, tmp_path / "out", "00_tracksMeta.csv:2: column 'trackId' holds '1.5', not a whole number")

@@ -78,6 +78,7 @@ from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util import input_files
 from ..util.progress import make_progress, say
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
+from .textfile import MAX_MAGNITUDE, csv_record_line, in_range, range_problem
 from .windows import GROUP_TOLERANCE_M, _window_hashes
 
 DATASET = "round"
@@ -244,10 +245,11 @@ def _header(path: Path) -> list[str]:
 
 
 def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFrame:
-    """The named columns of a CSV file with their types, plus `__row` (0-based data row; line = row + 2).
+    """The named columns of a CSV file with their types, plus `__row` (0-based data row).
 
-    A missing (or renamed) column, a cell that does not parse, an empty cell or a non-finite number raise a
-    DataError naming the file and, for cells, the line.
+    A missing (or renamed) column, a cell that does not parse, an empty cell or a number that is not finite or
+    beyond :data:`textfile.MAX_MAGNITUDE` raise a DataError naming the file and, for cells, the line an editor
+    shows (:func:`textfile.csv_record_line`).
     """
     header = _header(path)
     missing = [name for name in columns if name not in header]
@@ -258,15 +260,22 @@ def read_csv_columns(path: Path, columns: dict[str, pl.DataType]) -> pl.DataFram
     except (pl.exceptions.PolarsError, OSError):
         raise _locate_bad_cell(path, columns) from None
     frame = frame.select(list(columns)).with_row_index("__row")
-    bad = [pl.col(name).is_null() | (~pl.col(name).is_finite() if dtype == pl.Float64 else pl.lit(False))
+    bad = [pl.col(name).is_null() | (~in_range(pl.col(name)) if dtype == pl.Float64 else pl.lit(False))
            for name, dtype in columns.items()]
     flags = frame.select(pl.any_horizontal(bad).alias("bad")).to_series()
     if flags.any():
         row = frame.row(int(flags.arg_true()[0]), named=True)
-        name = next(n for n, d in columns.items() if row[n] is None or (d == pl.Float64 and not math.isfinite(row[n])))
-        problem = "is empty" if columns[name] == pl.String else "is empty or not a finite number"
-        raise DataError(f"column '{name}' {problem}", path=path, line=int(row["__row"]) + 2)
+        name = next(n for n, d in columns.items() if row[n] is None
+                    or (d == pl.Float64 and not (math.isfinite(row[n]) and abs(row[n]) <= MAX_MAGNITUDE)))
+        problem = "is empty" if row[name] is None else f"is {range_problem(row[name])}"
+        raise DataError(f"column '{name}' {problem}", path=path, **_line(path, int(row["__row"])))
     return frame
+
+
+def _line(path: Path, row: int) -> dict[str, int]:
+    """Where data row `row` (0-based) of a CSV file starts, as an editor counts lines."""
+    line = csv_record_line(path, row)
+    return {"line": line} if line is not None else {}
 
 
 def _locate_bad_cell(path: Path, columns: dict[str, pl.DataType]) -> DataError:
@@ -286,7 +295,7 @@ def _locate_bad_cell(path: Path, columns: dict[str, pl.DataType]) -> DataError:
         if bad.any():
             row = int(bad.arg_true()[0])
             kind = "a whole number" if dtype == pl.Int64 else "a number"
-            return DataError(f"column '{name}' holds {raw[row]!r}, not {kind}", path=path, line=row + 2)
+            return DataError(f"column '{name}' holds {raw[row]!r}, not {kind}", path=path, **_line(path, row))
     return DataError("cannot parse CSV", path=path)
 
 
