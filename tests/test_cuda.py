@@ -39,8 +39,8 @@ def test_cuda_and_cpu_agree_on_the_same_weights(synthetic_dataset: Path, tmp_pat
     """One set of trained weights gives the same log-likelihoods of the ground truth on both devices."""
     run = train(synthetic_dataset, tmp_path / "run", model="trajflow", device="cuda", quiet=True, overrides=BUDGET)
     batch = data_module.load_problems(synthetic_dataset, split="test").batch.index(slice(0, 64))
-    on_cpu = load_model(run).eval()
-    on_gpu = load_model(run).eval().to("cuda")
+    on_cpu = load_model(run / "final").eval()
+    on_gpu = load_model(run / "final").eval().to("cuda")
     with torch.no_grad():
         cpu = on_cpu.log_likelihood(batch)
         gpu = on_gpu.log_likelihood(batch.to(torch.device("cuda"))).cpu()

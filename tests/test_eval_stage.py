@@ -346,7 +346,7 @@ def test_a_budget_raised_for_one_run_by_hand_is_kept_by_the_experiment(tmp_path:
 
 def test_an_evaluation_counts_only_for_the_model_it_evaluated(tmp_path: Path) -> None:
     """By the weights' digest; for evaluations from before digests were recorded, by the dates."""
-    from trajflow_pipeline.stages.experiment import run_evaluated
+    from trajflow_pipeline.rundir import is_evaluated as run_evaluated
 
     run = tmp_path / "run"
     (run / "eval").mkdir(parents=True)

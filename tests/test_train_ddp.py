@@ -52,4 +52,4 @@ def test_two_gloo_processes_end_with_identical_weights(tmp_path: Path) -> None:
     digests = info["rank_weight_digests"]
     assert len(digests) == 2 and digests[0] == digests[1] and info["ranks_consistent"]
     assert (run / "final" / "model.safetensors").is_file()
-    assert load_model(run).stages == ("autoencoder", "standardize", "flow")
+    assert load_model(run / "final").stages == ("autoencoder", "standardize", "flow")

@@ -24,7 +24,7 @@ from trajflow_pipeline.model.normalize import target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
 from train_fakes import FakeProblems
 from trajflow_pipeline.stages import train as train_stage
-from trajflow_pipeline.stages.runs import open_run
+from trajflow_pipeline.rundir import open_run
 from trajflow_pipeline.stages.train import train
 from trajflow_pipeline.util import provenance
 
@@ -87,7 +87,7 @@ def log_of(run: Path) -> pl.DataFrame:
 
 
 def final_weights(run: Path) -> dict[str, torch.Tensor]:
-    return load_model(run).state_dict()
+    return load_model(run / "final").state_dict()
 
 
 def test_training_lowers_validation_nll_and_samples_both_modes(monkeypatch: pytest.MonkeyPatch,
@@ -102,7 +102,7 @@ def test_training_lowers_validation_nll_and_samples_both_modes(monkeypatch: pyte
         assert val.min() < val[0] - 0.1, f"{stage} validation loss did not improve: {val.to_list()}"
     flow_val = log.filter(pl.col("stage") == "flow").get_column("val_loss")
     assert flow_val.min() < 0
-    model = load_model(run, expected_model="trajflow")
+    model = load_model(run / "final", expected_model="trajflow")
     batch, _ = bimodal_batch(20, seed=7)
     trajectories, log_lik = model.sample(batch, 50, generator=torch.Generator().manual_seed(0))
     local = to_local(trajectories.reshape(20, -1, 2), target_frame(batch.past)).reshape(20, 50, 14, 2)
@@ -129,7 +129,7 @@ def test_run_directory_contents(monkeypatch: pytest.MonkeyPatch, tmp_path: Path)
     lr = log.get_column("lr").to_list()
     assert lr[1] == pytest.approx(lr[0] * 0.98)
     assert (run / "checkpoints" / "state.pt").is_file() and (run / "checkpoints" / "best-flow.safetensors").is_file()
-    assert load_model(run).name == "flomo"
+    assert load_model(run / "final").name == "flomo"
     leftovers = [p.name for p in run.rglob("*") if ".tmp" in p.name]
     assert not leftovers
 
@@ -240,7 +240,7 @@ def test_constant_velocity_run(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) 
     run = train(tmp_path / "d", tmp_path / "run", model="cv", quiet=True)
     log = log_of(run)
     assert log.get_column("stage").to_list() == ["fit"]
-    model = load_model(run, expected_model="cv")
+    model = load_model(run / "final", expected_model="cv")
     assert 0 < float(model.sigma) < 1
     trajectories, _ = model.sample(bimodal_batch(3)[0], 5, steps=20)
     assert trajectories.shape == (3, 5, 20, 2)
@@ -320,7 +320,7 @@ def test_trains_on_a_real_dataset_directory(synthetic_dataset: Path, tmp_path: P
     info = json.loads((run / "run.json").read_text())
     assert info["dataset"] == "synthetic_bimodal" and info["n_past"] == 10 and info["n_future"] == 14
     assert info["fingerprint"]["manifest_sha256"]
-    model = load_model(run)
+    model = load_model(run / "final")
     problems = data_module.load_problems(synthetic_dataset, split="test")
     trajectories, log_lik = model.sample(problems.batch.index(slice(0, 4)).without_future(), 3, steps=20)
     assert trajectories.shape == (4, 3, 20, 2) and np.isfinite(log_lik.numpy()).all()
@@ -336,7 +336,7 @@ def test_flow_standardize_is_fitted_logged_saved_and_resumed(monkeypatch: pytest
     whole = train(tmp_path / "data", tmp_path / "whole", **options)
     log = log_of(whole)
     assert log.get_column("stage").unique(maintain_order=True).to_list() == ["standardize", "flow"]
-    model = load_model(whole)
+    model = load_model(whole / "final")
     assert model.stages == ("standardize", "flow") and bool((model.flow.scale != 1).all())
 
     parts = train_killed_and_resumed(monkeypatch, tmp_path / "parts", ("flow", 1), **options)

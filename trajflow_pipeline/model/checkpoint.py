@@ -131,9 +131,7 @@ def load_training_state(path: str | Path, expected_model: str | None = None) -> 
 
 
 def _model_path(path: Path) -> Path:
-    """A model file, or the model file inside a run directory (``final/``) or a plain directory."""
-    if path.is_dir() and (path / "final" / MODEL_FILE).is_file():
-        return path / "final" / MODEL_FILE
+    """A model file, or the model file inside a directory."""
     return path / MODEL_FILE if path.is_dir() or path.suffix == "" else path
 
 

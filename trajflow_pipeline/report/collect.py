@@ -18,14 +18,12 @@ from typing import Any, NamedTuple
 import polars as pl
 
 from ..errors import DataError, TrajflowError
+from ..rundir import (EVAL_DIR, EVAL_FILE, GROUND_TRUTH_FILE, LOG_FILES, METRICS_FILE, PREDICTIONS_FILE,
+                      looks_like_run)
 from ..util import input_files
 from .paper import UNBOUNDED_PREFIX, model_label, model_order
 
-EVAL_DIR = "eval"
 EXPERIMENT_FILE = "experiment.json"
-TRAIN_LOGS = ("train_log.csv", "train_log.parquet")
-#: Files or folders that only a (trained, not yet evaluated) run holds: used to word the "eval first" error.
-_RUN_MARKERS = (*TRAIN_LOGS, "final", "run.json", "config.toml", "config.json", "checkpoints")
 
 #: Column kinds the report checks; the dtype each is cast to.
 _KINDS: dict[str, pl.DataType] = {"int": pl.Int64, "float": pl.Float64, "str": pl.String, "bool": pl.Boolean}
@@ -103,18 +101,13 @@ class Inputs:
     planned: tuple[PlannedRun, ...] = ()
 
 
-def _looks_like_run(path: Path) -> bool:
-    """A directory that holds training outputs (but possibly no evaluation yet)."""
-    return any((path / marker).exists() for marker in _RUN_MARKERS) or (path / EVAL_DIR).exists()
-
-
 def _check_run_dir(path: Path) -> None:
     """Raise the right one-line error for a directory that is not a usable evaluated run."""
-    if (path / EVAL_DIR / "metrics.parquet").is_file():
+    if (path / EVAL_DIR / METRICS_FILE).is_file():
         return
-    if _looks_like_run(path):
-        raise TrajflowError(f"{path}: no {EVAL_DIR}/metrics.parquet; run `trajflow eval {path}` first")
-    raise TrajflowError(f"{path}: neither an evaluated run (no {EVAL_DIR}/metrics.parquet) nor an experiment "
+    if looks_like_run(path):
+        raise TrajflowError(f"{path}: no {EVAL_DIR}/{METRICS_FILE}; run `trajflow eval {path}` first")
+    raise TrajflowError(f"{path}: neither an evaluated run (no {EVAL_DIR}/{METRICS_FILE}) nor an experiment "
                         f"(no {EXPERIMENT_FILE})")
 
 
@@ -208,7 +201,7 @@ def resolve_inputs(inputs: Iterable[str | Path]) -> Inputs:
 
 def load_run(path: Path, experiment: str | None = None) -> Run:
     """A :class:`Run` from its eval.json (model, dataset and seed are required; fold may be null)."""
-    info_path = path / EVAL_DIR / "eval.json"
+    info_path = path / EVAL_DIR / EVAL_FILE
     info = read_json(info_path)
     missing = [key for key in ("model", "dataset", "seed") if key not in info]
     if missing:
@@ -265,7 +258,7 @@ def collect(frame: pl.LazyFrame, path: Path, what: str = "Parquet file") -> pl.D
 
 def run_metrics(run: Run) -> pl.DataFrame:
     """The run's aggregate rows (metric, value); identity columns come from eval.json, not the table."""
-    path = run.eval_dir / "metrics.parquet"
+    path = run.eval_dir / METRICS_FILE
     table = collect(scan_table(path, METRICS_COLUMNS, what="metrics table")
                     .filter(pl.col("aggregate")).select("metric", "value"), path, "metrics table")
     duplicated = table.filter(pl.col("metric").is_duplicated()).get_column("metric").unique().sort().to_list()
@@ -279,7 +272,7 @@ def run_medians(run: Run) -> pl.DataFrame:
     that have such rows; `*_ext_long` has only its aggregate), as (metric, value): the typical problem, which a few
     far-off ground truths cannot move as they move the mean. NaN where any row is NaN (as the mean would be),
     rather than a median of the other rows."""
-    path = run.eval_dir / "metrics.parquet"
+    path = run.eval_dir / METRICS_FILE
     value = pl.col("value")
     scan = (scan_table(path, METRICS_COLUMNS, what="metrics table")
             .filter(~pl.col("aggregate") & pl.col("metric").str.starts_with(UNBOUNDED_PREFIX))
@@ -303,17 +296,17 @@ def metrics_frame(runs: list[Run], read: Callable[[Run], pl.DataFrame] = run_met
 
 def scan_predictions(run: Run) -> pl.LazyFrame:
     """The run's draws, lazily (they can be large: filter before collecting)."""
-    return scan_table(run.eval_dir / "predictions.parquet", PREDICTION_COLUMNS, what="predictions table")
+    return scan_table(run.eval_dir / PREDICTIONS_FILE, PREDICTION_COLUMNS, what="predictions table")
 
 
 def scan_ground_truth(run: Run) -> pl.LazyFrame:
     """The run's observed pasts and ground-truth futures, lazily."""
-    return scan_table(run.eval_dir / "ground_truth.parquet", GROUND_TRUTH_COLUMNS, what="ground-truth table")
+    return scan_table(run.eval_dir / GROUND_TRUTH_FILE, GROUND_TRUTH_COLUMNS, what="ground-truth table")
 
 
 def _scan_train_log(run: Run) -> tuple[pl.LazyFrame, Path] | None:
     """The run's training log, checked against the log columns, and its path (None when the run has none)."""
-    for name in TRAIN_LOGS:
+    for name in LOG_FILES:
         path = run.path / name
         if not path.is_file():
             continue

@@ -14,6 +14,7 @@ import numpy as np
 import polars as pl
 
 from ..errors import DataError
+from ..rundir import GROUND_TRUTH_FILE, PREDICTIONS_FILE
 from .collect import Run, collect, scan_ground_truth, scan_predictions
 from .paper import model_order
 
@@ -96,7 +97,7 @@ def _draw_array(predictions: pl.DataFrame, t0: np.ndarray, path: Path) -> tuple[
 
 def example_panels(run: Run, sample_ids: list[int]) -> dict[int, Panel]:
     """The panels of `sample_ids` in `run` (samples the run did not evaluate are left out)."""
-    gt_path, pred_path = run.eval_dir / "ground_truth.parquet", run.eval_dir / "predictions.parquet"
+    gt_path, pred_path = run.eval_dir / GROUND_TRUTH_FILE, run.eval_dir / PREDICTIONS_FILE
     wanted = collect(scan_ground_truth(run).filter(pl.col("sample_id").is_in(sample_ids))
                      .select("sample_id", "group_id").unique(), gt_path)
     group_of = dict(wanted.iter_rows())
@@ -123,7 +124,7 @@ def density_data(runs: dict[str, Run]) -> DensityData | None:
     distribution; up to DENSITY_TRAJECTORIES of them are pooled, taking whole samples in id order.
     """
     first = next(iter(runs.values()))
-    gt_path = first.eval_dir / "ground_truth.parquet"
+    gt_path = first.eval_dir / GROUND_TRUTH_FILE
     sizes = collect(scan_ground_truth(first).group_by("group_id").agg(pl.col("sample_id").n_unique().alias("n"))
                     .sort("n", "group_id", descending=[True, False]).head(1), gt_path)
     if sizes.is_empty():
@@ -135,9 +136,9 @@ def density_data(runs: dict[str, Run]) -> DensityData | None:
     truth = gt.filter(pl.col("step") >= 1).select("x", "y").to_numpy()
     models = []
     for model, run in runs.items():
-        path = run.eval_dir / "predictions.parquet"
+        path = run.eval_dir / PREDICTIONS_FILE
         group = collect(scan_ground_truth(run).filter(pl.col("group_id") == group_id).select("sample_id").unique()
-                        .sort("sample_id"), run.eval_dir / "ground_truth.parquet").get_column("sample_id")
+                        .sort("sample_id"), run.eval_dir / GROUND_TRUTH_FILE).get_column("sample_id")
         if group.is_empty():
             continue
         draws = collect(scan_predictions(run).filter(pl.col("sample_id") == group[0])

@@ -70,6 +70,8 @@ from ..metrics.inputs import group_agents, group_minimum
 from ..metrics.rome import KDE_CHOICES, KDE_EXACT
 from ..model.checkpoint import model_digest
 from ..model.models import CV_EXTENSION, TrajectoryModel
+from ..rundir import (EVAL_DIR, EVAL_FILE, EVAL_LOCK, GROUND_TRUTH_FILE, METRICS_FILE, PREDICTIONS_FILE, ROME_CACHE_DIR,
+                      RunInfo, open_run)
 from ..schemas import data_mismatch, open_dataset
 from ..util import input_files
 from ..util.atomic import atomic_directory
@@ -77,13 +79,7 @@ from ..util.bounds import check_seed
 from ..util.claim import claim
 from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machine_description
-from .runs import RunInfo, open_run
 
-EVAL_DIR = "eval"
-#: finished ROME fits of an evaluation in progress (removed when it completes; see metrics.rome_cache)
-ROME_CACHE_DIR = "eval-cache"
-#: the claim an evaluation holds on its run (util.claim), so that two never share the cache
-EVAL_LOCK = ".eval.lock"
 #: suffix of the metrics scored over each sample's own ground-truth horizon (--extended-horizon)
 EXTENDED_SUFFIX = "_ext"
 #: further suffix of the extended metrics' means over only the samples that need more than n_future steps
@@ -458,10 +454,10 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
         **_group_counts(problems, horizon.evaluated, options.metrics),
     }
     with atomic_directory(run.path / EVAL_DIR) as tmp:
-        predictions_table(problems.sample_id, trajectories, log_lik).write_parquet(tmp / "predictions.parquet")
-        ground_truth_table(problems).write_parquet(tmp / "ground_truth.parquet")
-        metrics.write_parquet(tmp / "metrics.parquet")
-        (tmp / "eval.json").write_text(json.dumps(info, indent=2, default=str) + "\n")
+        predictions_table(problems.sample_id, trajectories, log_lik).write_parquet(tmp / PREDICTIONS_FILE)
+        ground_truth_table(problems).write_parquet(tmp / GROUND_TRUTH_FILE)
+        metrics.write_parquet(tmp / METRICS_FILE)
+        (tmp / EVAL_FILE).write_text(json.dumps(info, indent=2, default=str) + "\n")
     shutil.rmtree(run.path / ROME_CACHE_DIR, ignore_errors=True)  # its fits are in the evaluation now
     return run.path / EVAL_DIR
 
@@ -480,7 +476,7 @@ def _group_counts(problems: Problems, steps: int, metrics: tuple[str, ...]) -> d
 
 def aggregate_metrics(eval_dir: str | Path) -> dict[str, float]:
     """metric -> value of the aggregate rows of an eval directory's metrics table."""
-    table = input_files.read_parquet(Path(eval_dir) / "metrics.parquet").filter(pl.col("aggregate"))
+    table = input_files.read_parquet(Path(eval_dir) / METRICS_FILE).filter(pl.col("aggregate"))
     return dict(table.select("metric", "value").iter_rows())
 
 

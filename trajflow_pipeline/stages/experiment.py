@@ -43,7 +43,6 @@ the plan, or to split an experiment between machines. The index still covers eve
 
 from __future__ import annotations
 
-import datetime as dt
 import fnmatch
 import json
 import multiprocessing
@@ -66,14 +65,14 @@ from ..errors import TrajflowError, UsageError
 from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, RunConfig, load_config
 from ..model.models import MODEL_CLASSES
+from ..rundir import CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, read_run_config
 from ..schemas import open_dataset
 from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.bounds import check_seed
 from ..util.claim import claim, claims_supported
 from ..util.progress import say
-from .evaluate import EVAL_DIR, EvalOptions, evaluate
-from .runs import CONFIG_FILE, read_run_config, read_run_info, weights_digest
+from .evaluate import EvalOptions, evaluate
 from .train import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
 
 INGESTS = ("synthetic-bimodal", "eth-ucy")
@@ -367,37 +366,9 @@ def plan_order(models: list[str], folds: list[str | None], seeds: list[int]) -> 
     return [(m, f, s) for m in ordered for f in folds for s in seeds]
 
 
-def run_evaluated(run_dir: Path) -> bool:
-    """Trained, and evaluated on its current final model (a run whose budget was raised is neither until its new
-    model is trained and evaluated)."""
-    if not (run_dir / EVAL_DIR / "metrics.parquet").exists():
-        return False
-    info = read_run_info(run_dir)
-    try:
-        evaluation = json.loads(input_files.read_text(run_dir / EVAL_DIR / "eval.json"))
-    except (TrajflowError, OSError, ValueError):
-        return False
-    if info is None or info.get("status") != "finished" or not isinstance(evaluation, dict):
-        return False
-    evaluated, current = evaluation.get("model_digest"), weights_digest(info)
-    if evaluated is not None and current is not None:
-        return evaluated == current
-    # Evaluations from before digests were recorded: current unless made before the model was finished.
-    try:
-        return dt.datetime.fromisoformat(evaluation["date"]) >= dt.datetime.fromisoformat(info["finished"])
-    except (KeyError, TypeError, ValueError):
-        return True
-
-
-def _final_model(run_dir: Path) -> tuple[Any, Any] | None:
-    """What identifies the run's final model: when it was finished and its weights' digest (run.json)."""
-    info = read_run_info(run_dir)
-    return None if info is None else (info.get("finished"), weights_digest(info))
-
-
 def run_done(run_dir: Path, overrides: list[str]) -> bool:
-    """Finished (see `run_evaluated`) with the config the experiment now gives it (its budgets were not raised)."""
-    if not run_evaluated(run_dir):
+    """Finished (see `rundir.is_evaluated`) with the config the experiment now gives it (its budgets were not raised)."""
+    if not is_evaluated(run_dir):
         return False
     saved = read_run_config(run_dir)
     return saved is None or load_config(overrides=overrides, base=saved) == saved
@@ -436,10 +407,10 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
             inner_quiet = quiet or bool(worker)
             # Returns at once for a trained run; continues a run whose budget was raised (when that budget
             # stopped it: otherwise its model, and so its evaluation, stay as they are).
-            model_before = _final_model(run_dir)
+            model_before = final_model_identity(run_dir)
             train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
                   device=device, resume=(run_dir / CONFIG_FILE).is_file(), quiet=inner_quiet)
-            if not run_evaluated(run_dir) or _final_model(run_dir) != model_before:
+            if not is_evaluated(run_dir) or final_model_identity(run_dir) != model_before:
                 evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
                          quiet=inner_quiet)
         note(f"{index}/{len(plan)} {name}: done", "green")
@@ -507,7 +478,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
     with claim(out / ".index.lock", wait=True):
         finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r))]
         if finished:
-            metrics = pl.concat([input_files.read_parquet(out / r / EVAL_DIR / "metrics.parquet") for r in finished],
+            metrics = pl.concat([input_files.read_parquet(out / r / EVAL_DIR / METRICS_FILE) for r in finished],
                                 how="vertical_relaxed")
             with atomic_file(out / "metrics.parquet") as tmp:
                 metrics.write_parquet(tmp)

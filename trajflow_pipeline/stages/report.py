@@ -41,6 +41,7 @@ from ..report.render import slug, to_html, to_markdown
 from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
 from ..report.tables import (comparisons, fold_list, fold_stats, fold_tables, model_folds, summary_stats,
                              summary_table, targets, uneven_seeds)
+from ..rundir import GROUND_TRUTH_FILE, PREDICTIONS_FILE
 from ..util.atomic import atomic_directory
 from ..util.progress import duration_text, make_progress
 
@@ -194,7 +195,7 @@ def _example_figure(dataset: str, refs: dict[str, Run], max_examples: int) -> Fi
     """Chosen samples × models: past, all ground-truth futures of the group, draws by likelihood."""
     first = next(iter(refs.values()))
     index = collect(scan_ground_truth(first).select("sample_id", "group_id"),
-                    first.eval_dir / "ground_truth.parquet")
+                    first.eval_dir / GROUND_TRUTH_FILE)
     sample_ids = choose_examples(index, max_examples)
     if not sample_ids:
         return None
@@ -248,7 +249,7 @@ def _k_curve_figure(dataset: str, runs: list[Run], progress: Progress) -> Figure
         per_run = []
         for run in (r for r in runs if r.model == model):
             curve = min_ade_curve(scan_predictions(run), scan_ground_truth(run),
-                                  run.eval_dir / "predictions.parquet")
+                                  run.eval_dir / PREDICTIONS_FILE)
             per_run.extend([curve] if curve.size else [])
             progress.advance(task)
         if per_run:

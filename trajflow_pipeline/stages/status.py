@@ -32,12 +32,10 @@ from ..errors import DataError, TrajflowError, UsageError
 from ..model.config import RunConfig, load_config
 from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
+from ..rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, LOG_FILE, METRICS_FILE, ROME_CACHE_DIR, RUN_FILE,
+                      is_evaluated, read_run_config, read_run_info)
 from ..util import input_files
-from .evaluate import EVAL_DIR, ROME_CACHE_DIR
-from .experiment import (ExperimentConfig, load_experiment, plan_order, run_done, run_evaluated, run_name,
-                         run_overrides)
-from .runs import CONFIG_FILE, RUN_FILE, read_run_config, read_run_info
-from .train import LOG_FILE
+from .experiment import ExperimentConfig, load_experiment, plan_order, run_done, run_name, run_overrides
 
 #: the epoch budget keys of each gradient stage (train.<prefix>_min_epochs, _max_epochs, _patience)
 _BUDGET_PREFIX = {"autoencoder": "ae", "flow": "flow"}
@@ -328,7 +326,7 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
         state = "training" if busy else "planned"
     elif info.get("status") != "finished":
         state = "training" if busy else ("training or interrupted" if busy is None else "interrupted")
-    elif not run_evaluated(run_dir):
+    elif not is_evaluated(run_dir):
         state = "evaluating" if busy else "trained"
     elif not run_done(run_dir, overrides):
         state = "continuing" if busy else "budget raised"
@@ -347,7 +345,7 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
         progress = _progress(log, budget, info if state not in _UNFINISHED else None)
         if state in _UNFINISHED and progress.stopped:
             progress = _next_stage(progress, budget, model)
-    evaluation = _read_json(run_dir / EVAL_DIR / "eval.json") if state == "done" else None
+    evaluation = _read_json(run_dir / EVAL_DIR / EVAL_FILE) if state == "done" else None
     eval_seconds = evaluation.get("seconds") if evaluation else None
     return RunStatus(
         name=run_dir.name, model=model, fold=fold, seed=seed, state=state, busy=busy, progress=progress,
@@ -416,7 +414,7 @@ def _next_stage(done: StageProgress, config: RunConfig, model: str) -> StageProg
 
 def _aggregates(run_dir: Path) -> dict[str, float]:
     """The evaluated run's aggregate metrics (metric -> mean)."""
-    path = run_dir / EVAL_DIR / "metrics.parquet"
+    path = run_dir / EVAL_DIR / METRICS_FILE
     try:
         table = input_files.read_parquet(path, columns=["metric", "value", "aggregate"]).filter(pl.col("aggregate"))
     except (pl.exceptions.PolarsError, OSError) as error:

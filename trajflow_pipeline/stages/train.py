@@ -6,18 +6,8 @@ context encoders on the latent NLL with an exponential learning-rate decay; the 
 only the flow stage, and the constant-velocity baseline fits its noise scale in closed form. Each gradient stage
 keeps the weights of its best validation epoch. A step whose gradients are not finite is skipped and counted.
 
-``RUN`` holds (rank 0 writes, every file atomically):
-
-* ``config.toml``                  -- the resolved configuration ([model], [train]);
-* ``run.json``                     -- model, dataset, fold, seed, data fingerprint, trajflow version, split sizes,
-                                      best epochs, skipped steps, status ("training" / "finished");
-* ``train_log.parquet``            -- epoch, stage, train_loss, val_loss, lr, seconds, skipped_steps, samples_per_s;
-* ``checkpoints/state.pt``         -- the last epoch's full training state (``--resume`` continues from it);
-* ``checkpoints/end-<stage>.pt``   -- the full training state at the last epoch of each finished gradient stage
-                                      (what a larger epoch budget continues that stage from);
-* ``checkpoints/best-<stage>.safetensors`` -- the best validation weights of each stage so far;
-* ``final/model.safetensors``      -- the trained model (:func:`trajflow_pipeline.model.load_model`); ``final/``
-                                      appears only when training has finished.
+``RUN`` is a run directory (:mod:`trajflow_pipeline.rundir`: config.toml, run.json, the training log, checkpoints
+and, once training has finished, final/); rank 0 writes, every file atomically.
 
 Larger budgets: ``--resume`` may raise a stage's epoch limit or its early-stopping patience
 (``train.ae_max_epochs`` / ``train.flow_max_epochs`` / ``train.ae_patience`` / ``train.flow_patience``; nothing
@@ -70,22 +60,19 @@ from .. import __version__
 from .. import data as data_module
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.batch import SceneBatch
-from ..model.checkpoint import (check_weights, load_training_state, model_digest, save_model,
+from ..model.checkpoint import (MODEL_FILE, check_weights, load_training_state, model_digest, save_model,
                                 save_training_state)
 from ..model.config import MODEL_NAMES, DataSpec, RunConfig, load_config, with_values
 from ..model.models import TrajectoryModel, build_model
 from ..model.runtime import resolve_device, tune_cpu_allocator
+from ..rundir import (BEST_FILE, CONFIG_FILE, FINAL_DIR, LOG_FILE, LOWEST_VAL_LOSS_FILE, MODEL_INFO_FILE, RUN_REQUIRED,
+                      STAGE_END_FILE, STATE_FILE, is_trained, read_run_config, read_run_info, write_run_info)
 from ..schemas import data_mismatch
 from ..util import input_files
 from ..util.atomic import atomic_directory, atomic_write_bytes, atomic_write_text
 from ..util.progress import make_progress, say
 from ..util.provenance import code_revision, machines_after, revisions_after
-from .runs import CONFIG_FILE, FINAL_DIR, RUN_FILE, RUN_REQUIRED, read_run_config, read_run_info
 
-LOG_FILE = "train_log.parquet"
-STATE_FILE = "checkpoints/state.pt"
-#: The training state at the last epoch of a finished gradient stage, formatted with the stage name.
-STAGE_END_FILE = "checkpoints/end-{stage}.pt"
 #: Training settings that act on the flow stage alone: a run may start from the autoencoder of a run that differs
 #: from it only in these (and the device).
 FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs",
@@ -132,7 +119,7 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
     source = Path(autoencoder_from) if autoencoder_from is not None else None
     #: the run to take the autoencoder from now (None: no source, or this run already took it and resumes)
     start_from = source if source is not None and not _started(run_dir, resume, source) else None
-    if resume and previous is None and _trained(run_dir):
+    if resume and previous is None and is_trained(run_dir):
         if dist.rank == 0 and not quiet:
             say((f"{run_dir}: already trained, nothing to resume", "dim"))
         return run_dir
@@ -215,7 +202,7 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
     for key, (old_value, _) in raised.items():
         stage = BUDGET_KEYS[key]
         later = any(s != stage for s in stages[stages.index(stage):]) if stage in stages else False
-        finished = later or (stage == "flow" and _trained(run_dir))
+        finished = later or (stage == "flow" and is_trained(run_dir))
         # a raised limit matters only to a stage that reached it; more patience, to one that stopped below its limit
         epochs = stages.count(stage)
         matters = (epochs >= old_value if key.endswith("_max_epochs")
@@ -224,15 +211,6 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
             return (f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states, so it cannot "
                     f"continue with a larger train.{key}")
     return None
-
-
-def _trained(run_dir: Path) -> bool:
-    """Whether the run has a final model that is current (run.json says finished; older runs without run.json
-    count by their final model alone)."""
-    if not (run_dir / FINAL_DIR / "model.safetensors").is_file():
-        return False
-    info = read_run_info(run_dir)
-    return info is None or info.get("status") == "finished"
 
 
 def _run_info(run_dir: Path) -> dict[str, Any]:
@@ -595,7 +573,7 @@ class _Session:
                     self._write_run_info("training")
                 save_training_state(state_path, state)
                 atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
-            elif self.writer and not _trained(self.run_dir):  # run.json names the code that continues it
+            elif self.writer and not is_trained(self.run_dir):  # run.json names the code that continues it
                 self._write_run_info("training")
         elif resume and (self.run_dir / FINAL_DIR).exists():
             raise UsageError(f"{self.run_dir}: {STATE_FILE} is missing, so this run cannot be continued or given a "
@@ -713,7 +691,7 @@ class _Session:
             if by_sample_nll:
                 keep = False
                 if improved and self.writer:  # what "val_loss" would have kept, for comparing the two
-                    save_model(self.model, self.run_dir / f"checkpoints/lowest-val-loss-{stage}.safetensors",
+                    save_model(self.model, self.run_dir / LOWEST_VAL_LOSS_FILE.format(stage=stage),
                                extra={"stage": stage, "epoch": epoch, "val_loss": val_loss})
                 if epoch % cfg.flow_select_every == 0 or stop:
                     if epoch % cfg.flow_select_every:
@@ -725,7 +703,7 @@ class _Session:
             if keep:
                 progress.best_weights = _copy_weights(self.model)
                 if self.writer:
-                    save_model(self.model, self.run_dir / f"checkpoints/best-{stage}.safetensors",
+                    save_model(self.model, self.run_dir / BEST_FILE.format(stage=stage),
                                extra={"stage": stage, "epoch": epoch, "val_loss": val_loss,
                                       **({"val_nll": val_nll} if by_sample_nll else {})})
             self.skipped_total += skipped
@@ -848,7 +826,7 @@ class _Session:
             raise TrajflowError(f"{self.run_dir / STATE_FILE}: checkpoint does not match {CONFIG_FILE}")
         start, reopened = self._reopen(state, trained)
         start = {**start, "config": self.config.to_json()}
-        if not reopened and int(start["stage_index"]) >= len(self.model.stages) and _trained(self.run_dir):
+        if not reopened and int(start["stage_index"]) >= len(self.model.stages) and is_trained(self.run_dir):
             if self.writer:
                 save_training_state(self.run_dir / STATE_FILE, start)
                 atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
@@ -918,10 +896,10 @@ class _Session:
         if self.writer:
             info_extra = {"rank_weight_digests": digests, "ranks_consistent": len(set(digests)) == 1}
             with atomic_directory(self.run_dir / FINAL_DIR) as tmp:
-                save_model(self.model, tmp / "model.safetensors",
+                save_model(self.model, tmp / MODEL_FILE,
                            extra={"dataset": self.data.spec.dataset, "fold": self.fold,
                                   "seed": self.config.train.seed, "fingerprint": self.data.fingerprint})
-                (tmp / "model.json").write_text(json.dumps(
+                (tmp / MODEL_INFO_FILE).write_text(json.dumps(
                     {"model": self.model.name, "log_lik_space": self.model.log_lik_space,
                      "config": self.config.to_dict(), "spec": self.data.spec.to_dict(),
                      "trajflow_version": __version__}, indent=2) + "\n")
@@ -943,7 +921,7 @@ class _Session:
             "log_lik_space": self.model.log_lik_space, "world_size": self.dist.world, "device": str(self.device),
             "cpu_threads": torch.get_num_threads(), "best": self.best, "skipped_steps": self.skipped_total,
             "started": self.started, "code_revisions": self.code_revisions, "machines": self.machines,
-            "final": f"{FINAL_DIR}/model.safetensors" if status == "finished" else None,
+            "final": f"{FINAL_DIR}/{MODEL_FILE}" if status == "finished" else None,
         }
         if self.autoencoder_from is not None:
             info["autoencoder_from"] = self.autoencoder_from
@@ -952,7 +930,7 @@ class _Session:
             # (a raised budget can end in the second the run first finished, keeping the same weights)
             info["finished"] = dt.datetime.now(dt.timezone.utc).isoformat()
         info.update(extra or {})
-        atomic_write_text(self.run_dir / RUN_FILE, json.dumps(info, indent=2, default=str) + "\n")
+        write_run_info(self.run_dir, info)
 
 
 # ---------------------------------------------------------------------------------------------------------- helpers

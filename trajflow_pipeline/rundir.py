@@ -1,11 +1,27 @@
-"""Reading a run directory written by `trajflow train`: its run.json and config.toml, checked, and the final model.
+"""The run directory `trajflow train` writes and `trajflow eval` adds to: the one module that names its files, reads
+and writes run.json and config.toml, and says what state a run is in (trained, evaluated).
 
-Every command that reads a run's own files (train --resume / --autoencoder-from, eval, status, experiment) reads
-them here, so a damaged file is the same one-line DataError naming it wherever it is met.
+Layout::
+
+    RUN/config.toml                 the resolved configuration ([model], [train]) the run trains and resumes with
+    RUN/run.json                    model, dataset, fold, seed, data fingerprint, trajflow version, split sizes,
+                                    best epochs, skipped steps, status ("training" / "finished"), provenance
+    RUN/train_log.parquet           epoch, stage, train_loss, val_loss, lr, seconds, skipped_steps, samples_per_s
+    RUN/checkpoints/state.pt        the last epoch's full training state (--resume continues from it)
+    RUN/checkpoints/end-<stage>.pt  the state at the last epoch of each finished gradient stage (what a larger
+                                    epoch budget continues that stage from)
+    RUN/checkpoints/best-<stage>.safetensors, lowest-val-loss-<stage>.safetensors   a stage's best weights so far
+    RUN/final/model.safetensors     the trained model (and model.json); final/ appears when training finished
+    RUN/eval/                       eval.json, metrics.parquet, predictions.parquet, ground_truth.parquet
+    RUN/eval-cache/, RUN/.eval.lock an evaluation in progress: its saved ROME fits, its claim
+
+Every command that reads a run's own files reads them here, so a damaged file is the same one-line DataError
+naming it wherever it is met.
 """
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,21 +29,48 @@ from typing import Any
 
 import torch
 
-from ..errors import DataError, TrajflowError, UsageError
-from ..model.checkpoint import MODEL_FILE, load_model
-from ..model.config import RunConfig, load_config
-from ..model.models import TrajectoryModel
-from ..util import input_files
+from .errors import DataError, TrajflowError, UsageError
+from .model.checkpoint import MODEL_FILE, load_model
+from .model.config import RunConfig, load_config
+from .model.models import TrajectoryModel
+from .util import input_files
+from .util.atomic import atomic_write_text
 
 CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
+#: the training log; older runs (and other tools) may hold it as CSV
+LOG_FILE = "train_log.parquet"
+LOG_FILES = ("train_log.csv", LOG_FILE)
+CHECKPOINT_DIR = "checkpoints"
+STATE_FILE = f"{CHECKPOINT_DIR}/state.pt"
+#: The training state at the last epoch of a finished gradient stage, formatted with the stage name.
+STAGE_END_FILE = f"{CHECKPOINT_DIR}/end-{{stage}}.pt"
+#: The best weights of a stage so far by the run's selection rule, and by the validation loss alone.
+BEST_FILE = f"{CHECKPOINT_DIR}/best-{{stage}}.safetensors"
+LOWEST_VAL_LOSS_FILE = f"{CHECKPOINT_DIR}/lowest-val-loss-{{stage}}.safetensors"
 FINAL_DIR = "final"
+#: what final/ holds besides the weights: the best epochs and the weights' digest, for people
+MODEL_INFO_FILE = "model.json"
+EVAL_DIR = "eval"
+EVAL_FILE = "eval.json"
+METRICS_FILE = "metrics.parquet"
+PREDICTIONS_FILE = "predictions.parquet"
+GROUND_TRUTH_FILE = "ground_truth.parquet"
+#: the ROME fits an evaluation in progress has saved (resumable), removed when it is written
+ROME_CACHE_DIR = "eval-cache"
+#: held by the one evaluation of a run that may run at a time
+EVAL_LOCK = ".eval.lock"
+#: what only a run holds (trained or not yet evaluated): tells a run from other folders
+RUN_MARKERS = (*LOG_FILES, FINAL_DIR, RUN_FILE, CONFIG_FILE, "config.json", CHECKPOINT_DIR)
+#: run.json's format: the key set trajflow reads (RUN_FIELDS) and writes; files written before it was recorded
+#: are version 1 too
+RUN_FORMAT_VERSION = 1
 
 #: The run.json keys trajflow reads and the JSON type each value must have (when present and not null).
 RUN_FIELDS: dict[str, type] = {
     "model": str, "dataset": str, "fold": str, "seed": int, "status": str, "data_dir": str, "fingerprint": dict,
     "best": dict, "started": str, "finished": str, "code_revisions": list, "machines": list,
-    "rank_weight_digests": list, "autoencoder_from": dict,
+    "rank_weight_digests": list, "autoencoder_from": dict, "format_version": int,
 }
 #: The run.json keys every run holds from its start (a run.json without one is damaged).
 RUN_REQUIRED = ("model", "dataset", "seed", "status", "data_dir", "fingerprint")
@@ -67,6 +110,12 @@ def read_run_info(run_dir: str | Path, required: tuple[str, ...] = ()) -> dict[s
     if source is not None and not isinstance(source.get("run"), str):
         raise DataError(f"'autoencoder_from' must name its run (a string 'run'), got {_short(source)}", path)
     return info
+
+
+def write_run_info(run_dir: str | Path, info: dict[str, Any]) -> None:
+    """Write run.json (atomically), stamped with :data:`RUN_FORMAT_VERSION`."""
+    atomic_write_text(Path(run_dir) / RUN_FILE,
+                      json.dumps({"format_version": RUN_FORMAT_VERSION, **info}, indent=2, default=str) + "\n")
 
 
 def read_run_config(run_dir: str | Path) -> RunConfig | None:
@@ -148,3 +197,48 @@ def open_run(run_dir: str | Path) -> RunInfo:
 def _strings(value: Any) -> tuple[str, ...] | None:
     """A run.json list as a tuple of strings (None when absent)."""
     return tuple(map(str, value)) if isinstance(value, list) else None
+
+
+def is_trained(run_dir: str | Path) -> bool:
+    """Whether the run has a final model that is current (run.json says finished; older runs without run.json
+    count by their final model alone)."""
+    run_dir = Path(run_dir)
+    if not (run_dir / FINAL_DIR / MODEL_FILE).is_file():
+        return False
+    info = read_run_info(run_dir)
+    return info is None or info.get("status") == "finished"
+
+
+def is_evaluated(run_dir: str | Path) -> bool:
+    """Trained, and evaluated on its current final model (a run whose budget was raised is neither until its new
+    model is trained and evaluated)."""
+    run_dir = Path(run_dir)
+    if not (run_dir / EVAL_DIR / METRICS_FILE).exists():
+        return False
+    info = read_run_info(run_dir)
+    try:
+        evaluation = json.loads(input_files.read_text(run_dir / EVAL_DIR / EVAL_FILE))
+    except (TrajflowError, OSError, ValueError):
+        return False
+    if info is None or info.get("status") != "finished" or not isinstance(evaluation, dict):
+        return False
+    evaluated, current = evaluation.get("model_digest"), weights_digest(info)
+    if evaluated is not None and current is not None:
+        return evaluated == current
+    # Evaluations from before digests were recorded: current unless made before the model was finished.
+    try:
+        return dt.datetime.fromisoformat(evaluation["date"]) >= dt.datetime.fromisoformat(info["finished"])
+    except (KeyError, TypeError, ValueError):
+        return True
+
+
+def final_model_identity(run_dir: str | Path) -> tuple[Any, Any] | None:
+    """What identifies the run's final model: when it was finished and its weights' digest (run.json)."""
+    info = read_run_info(run_dir)
+    return None if info is None else (info.get("finished"), weights_digest(info))
+
+
+def looks_like_run(path: str | Path) -> bool:
+    """A directory that holds training outputs (but possibly no evaluation yet)."""
+    path = Path(path)
+    return any((path / marker).exists() for marker in RUN_MARKERS) or (path / EVAL_DIR).exists()

@@ -1,0 +1,36 @@
+"""The package's layout promises, checked from its source: one module names the run directory's files."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import trajflow_pipeline
+
+PACKAGE = Path(trajflow_pipeline.__file__).parent
+#: the run directory's own file and folder names (the model file's name belongs to model/checkpoint.py, the
+#: checkpoint format's owner; config.toml and metrics.parquet also name files of an experiment directory)
+RUN_DIR_NAMES = ("run.json", "train_log", "state.pt", "end-", "best-", "lowest-val-loss-", "checkpoints", "eval.json",
+                 "predictions.parquet", "ground_truth.parquet", "eval-cache", ".eval.lock")
+
+
+def string_constants(path: Path) -> list[tuple[int, str]]:
+    """(line, text) of every string literal in a module that could be a path (no whitespace: messages and help
+    texts may mention a file for people) and is not a docstring."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                  and node.body and isinstance(node.body[0], ast.Expr)
+                  and isinstance(node.body[0].value, ast.Constant)}
+    return [(node.lineno, node.value) for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings
+            and not any(character.isspace() for character in node.value)]
+
+
+def test_only_rundir_names_the_run_directory_files() -> None:
+    owner = PACKAGE / "rundir.py"
+    found = [f"{path.relative_to(PACKAGE)}:{line}: {text!r}"
+             for path in sorted(PACKAGE.rglob("*.py")) if path != owner
+             for line, text in string_constants(path) if any(name in text for name in RUN_DIR_NAMES)]
+    assert not found, "run-directory file names outside rundir.py:\n" + "\n".join(found)
+    assert any("run.json" in text for _, text in string_constants(owner))
