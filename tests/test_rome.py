@@ -333,3 +333,19 @@ def test_rome_on_the_draws_of_a_shipped_trajflow_model(eth_ucy_dataset: Path, tm
             np.testing.assert_allclose(exact, _extended_precision_density(points, labels, queries), rtol=1e-10)
         else:
             _assert_same_as_romepy(points, queries)
+
+
+def test_rome_equals_romepy_on_pooled_synthetic_bimodal_futures(synthetic_dataset: Path) -> None:
+    """The synthetic bimodal benchmark's pooled fits: many 14-step futures (28 dimensions) of one past, in two modes
+    (here the dataset's own futures stand in for a model's draws: 500 pooled, as an evaluation pools a group's)."""
+    import polars as pl
+
+    from trajflow_pipeline.data.loader import load_problems
+
+    problems = load_problems(synthetic_dataset, split="test")
+    futures = problems.batch.future.double().flatten(1).numpy()
+    rng = np.random.default_rng(4)
+    chosen = rng.permutation(len(futures))
+    queries = np.concatenate([futures[chosen[500:505]], futures[chosen[:2]] + 0.3, futures[chosen[:1]] + 5.0])
+    assert pl.Series(problems.group_id).n_unique() == 1  # one identical-input group: one pooled fit
+    _assert_same_as_romepy(futures[chosen[:500]], queries)
