@@ -19,7 +19,7 @@ from nuscenes_fixture import (SMALL_CHALLENGE, AgentSpec, MapRects, Release, Sce
 
 from trajflow_pipeline.data import load_problems  # noqa: E402
 from trajflow_pipeline.schemas import open_dataset  # noqa: E402
-from trajflow_pipeline.stages.ingest_nuscenes import (EGO_AGENT_ID, NuScenesWarning, agent_type_of,  # noqa: E402
+from trajflow_pipeline.ingest.nuscenes import (EGO_AGENT_ID, NuScenesWarning, agent_type_of,  # noqa: E402
                                                       ingest_nuscenes, quaternion_yaw)
 from trajflow_pipeline.stages.inspect import summarize  # noqa: E402
 
@@ -293,8 +293,8 @@ def test_small_scenes_fixture_is_what_the_issue_asks_for() -> None:
 
 def test_layer_index_gives_the_devkits_raster(tmp_path: Path) -> None:
     """Handing get_map_mask only the records near a scene changes nothing in the raster."""
-    from trajflow_pipeline.stages import nuscenes_maps
-    from trajflow_pipeline.stages.ingest_nuscenes import load_devkit
+    from trajflow_pipeline.ingest import nuscenes_maps
+    from trajflow_pipeline.ingest.nuscenes import load_devkit
 
     rng = np.random.default_rng(1)
 

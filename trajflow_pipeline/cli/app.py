@@ -96,7 +96,7 @@ def ingest_eth_ucy_command(
     quiet: Quiet = False,
 ) -> None:
     """ETH/UCY pedestrians: leave-one-location-out folds, 8 past + 12 future steps at 0.4 s."""
-    from ..stages.ingest_eth_ucy import ingest_eth_ucy
+    from ..ingest.eth_ucy import ingest_eth_ucy
 
     with user_errors():
         _done(ingest_eth_ucy(raw, out, overwrite=overwrite, quiet=quiet), quiet)
@@ -111,7 +111,7 @@ def ingest_synthetic_command(
     quiet: Quiet = False,
 ) -> None:
     """The paper's synthetic bimodal set: one past of 10 steps, two future modes of 14 steps at 0.25 s."""
-    from ..stages.ingest_synthetic import ingest_synthetic_bimodal
+    from ..ingest.synthetic import ingest_synthetic_bimodal
 
     with user_errors():
         _done(ingest_synthetic_bimodal(out, samples=samples, seed=seed, overwrite=overwrite, quiet=quiet), quiet)
@@ -148,7 +148,7 @@ def ingest_csv_command(
     quiet: Quiet = False,
 ) -> None:
     """Bring-your-own trajectories from a CSV or Parquet table."""
-    from ..stages.ingest_csv import ColumnMap, ingest_csv
+    from ..ingest.csv import ColumnMap, ingest_csv
 
     with user_errors():
         result = ingest_csv(file, out, dt=dt, columns=ColumnMap.parse(columns), n_past=past, n_future=future,

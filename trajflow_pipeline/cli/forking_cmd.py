@@ -68,7 +68,7 @@ def ingest_forking_paths_command(
     quiet: Quiet = False,
 ) -> None:
     """Forking Paths: several annotated futures per past, 8 past + 12 future steps at 0.4 s, 5-fold CV."""
-    from ..stages.ingest_forking_paths import ingest_forking_paths
+    from ..ingest.forking_paths import ingest_forking_paths
 
     with user_errors():
         result = ingest_forking_paths(raw, out, camera=camera, fps=parse_per_scene("--fps", fps),

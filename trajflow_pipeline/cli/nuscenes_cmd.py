@@ -22,7 +22,7 @@ from .common import Overwrite, Quiet, user_errors
 @contextlib.contextmanager
 def _show_ingest_warnings() -> Iterator[None]:
     """Print the ingest's own warnings (no map expansion, dropped entries) as `warning: ...` lines on stderr."""
-    from ..stages.nuscenes_maps import NuScenesWarning
+    from ..ingest.nuscenes_maps import NuScenesWarning
 
     previous = warnings.showwarning
 
@@ -64,7 +64,7 @@ def ingest_nuscenes_command(
 ) -> None:
     """nuScenes via nuscenes-devkit: prediction-challenge samples (4 past + 12 future at 0.5 s), ego vehicle, maps."""
     with user_errors():
-        from ..stages.ingest_nuscenes import ingest_nuscenes
+        from ..ingest.nuscenes import ingest_nuscenes
 
         with _show_ingest_warnings():
             result = ingest_nuscenes(dataroot, out, version=version, all_agents=all_agents, overwrite=overwrite,

@@ -27,8 +27,8 @@ def ingest_round_command(
     """rounD gap-acceptance scenarios: entering target + circulating ego, 15 past / 25 (up to 35) future steps at
     0.2 s, 5 folds, background maps."""
     from ..stages.inspect import summarize
-    from ..stages.ingest_round import ingest_round
-    from ..stages.round_geometry import load_geometry_file
+    from ..ingest.round import ingest_round
+    from ..ingest.round_geometry import load_geometry_file
 
     with user_errors():
         config = load_geometry_file(geometry) if geometry is not None else None

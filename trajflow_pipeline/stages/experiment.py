@@ -202,11 +202,11 @@ def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:
         raise TrajflowError(f"{config.data_path}: dataset not found and the experiment config names no ingest")
     options = dict(config.ingest_options)
     if config.ingest == "synthetic-bimodal":
-        from .ingest_synthetic import ingest_synthetic_bimodal
+        from ..ingest.synthetic import ingest_synthetic_bimodal
 
         return ingest_synthetic_bimodal(config.data_path, samples=int(options.get("samples", 3000)),
                                         seed=int(options.get("seed", 0)), quiet=quiet)
-    from .ingest_eth_ucy import ingest_eth_ucy
+    from ..ingest.eth_ucy import ingest_eth_ucy
 
     if "raw" not in options:
         raise UsageError("[data] ingest = 'eth-ucy' needs raw = the raw ETH/UCY folder")

@@ -62,7 +62,7 @@ Multi-future representation
     inputs of a group are identical, not merely close, every future of a moment takes its rows up to the fork from
     the moment's first file (sorted by name); by construction the x-agent differs by less than the tolerance there.
     All samples of a moment share ``group_id`` (numbered from the sorted moment keys); the ingest checks that
-    :func:`~trajflow_pipeline.stages.windows.identical_input_groups` finds exactly the same groups. A future whose
+    :func:`~trajflow_pipeline.ingest.windows.identical_input_groups` finds exactly the same groups. A future whose
     x-agent lacks the 8 + 12 grid steps around the fork is skipped and listed in the manifest's lineage
     (``skipped``). Single-future groups are kept (JSD skips them later).
 

@@ -34,7 +34,7 @@ from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, PROTOCOL_TRAIN_IS_TEST, PROTOCOLS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
 from ..util import input_files
-from .ingest_forking_paths import assign_folds
+from .forking_paths import assign_folds
 from .textfile import csv_record_line, csv_records, in_range, range_problem
 from .windows import complete_windows, identical_input_groups
 
