@@ -34,7 +34,8 @@ from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, PROTOCOL_TRAIN_IS_TEST, PROTOCOLS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
 from ..util import input_files
-from .forking_paths import assign_folds
+from .base import Ingest
+from .folds import assign_folds
 from .textfile import csv_record_line, csv_records, in_range, range_problem
 from .windows import complete_windows, identical_input_groups
 
@@ -482,3 +483,6 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
             "folds": folds if options.resolved_protocol == PROTOCOL_FOLDS else None,
             "val_fraction": val_fraction, "test_fraction": test_fraction, "seed": seed})
     return out
+
+
+ADAPTER = Ingest(name="csv", dataset=None, dt=None, folds=None, raw="a CSV or Parquet file", function=ingest_csv)

@@ -83,14 +83,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import polars as pl
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util import input_files
 from ..util.bounds import check_seed
-from ..util.progress import make_progress, say
+from ..util.progress import make_progress
+from .base import Ingest, warn
+from .folds import assign_folds
 from .windows import identical_input_groups
 
 DATASET = "forking_paths"
@@ -519,19 +520,6 @@ def _per_scene(value: float | dict[str, float] | None, scenes: list[str], defaul
     return out
 
 
-def assign_folds(moments: list[str], folds: int, val_fraction: float, seed: int) -> pl.DataFrame:
-    """moment -> group_id (sorted order), fold ("0".."folds-1", seeded, balanced) and split (seeded val groups)."""
-    n = len(moments)
-    rng = np.random.default_rng(seed)
-    fold = np.empty(n, dtype=np.int64)
-    fold[rng.permutation(n)] = np.arange(n) % folds
-    n_val = max(1, round(val_fraction * n)) if n >= 2 and val_fraction > 0 else 0
-    val = np.zeros(n, dtype=bool)
-    val[rng.permutation(n)[:n_val]] = True
-    return pl.DataFrame({"moment": moments, "group_id": np.arange(n, dtype=np.int64),
-                         "fold": [str(f) for f in fold], "split": np.where(val, "val", "train")})
-
-
 def check_groups(samples: pl.DataFrame, tracks: pl.DataFrame, root: Path) -> None:
     """The moment groups must be exactly the groups of identical inputs (`identical_input_groups`)."""
     inputs = samples.select("moment", "group_id", identical_input_groups(samples, tracks).alias("input_group"))
@@ -621,8 +609,8 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
     scenes_table = pl.DataFrame(scene_rows, schema_overrides={"fold": pl.String})
     single = samples.group_by("group_id").len().filter(pl.col("len") == 1).height
     if skipped and not quiet:
-        say(("warning:", "yellow"), f" skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} "
-            "steps around the fork (listed in dataset.json, lineage.skipped)")
+        warn(f"skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} steps around the fork "
+             "(listed in dataset.json, lineage.skipped)")
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
         for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):
@@ -633,3 +621,7 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
             "val_fraction": val_fraction, "seed": seed, "vehicle_id_offset": VEHICLE_ID_OFFSET,
             "single_future_groups": single, "skipped": skipped})
     return out
+
+
+ADAPTER = Ingest(name="forking-paths", dataset=DATASET, dt=DT, folds=None, raw="the Forking Paths release",
+                 function=ingest_forking_paths)

@@ -53,12 +53,13 @@ from typing import Any
 
 import numpy as np
 import polars as pl
+from rich.text import Text
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FIXED, DatasetMeta, DatasetWriter
-from ..util.progress import make_progress
+from ..util.progress import make_progress, styled
 from . import nuscenes_maps
-from .nuscenes_maps import NuScenesWarning
+from .base import Ingest, warn
 from .windows import complete_windows, identical_input_groups
 
 DATASET = "nuscenes"
@@ -99,7 +100,7 @@ SAMPLE_SCHEMA = {"scene_id": pl.String, "agent_id": pl.Int64, "t0_frame": pl.Int
 INSTALL_HINT = ("install the nuScenes extra: pip install -e '.[nuscenes]' "
                 "(or: pip install nuscenes-devkit 'numpy<2' 'opencv-python-headless<4.12')")
 
-__all__ = ["DATASET", "DT", "EGO_AGENT_ID", "N_FUTURE", "N_PAST", "NuScenesWarning", "VERSION_SPLITS",
+__all__ = ["DATASET", "DT", "EGO_AGENT_ID", "N_FUTURE", "N_PAST", "VERSION_SPLITS",
            "agent_type_of", "ingest_nuscenes", "quaternion_yaw"]
 
 
@@ -534,9 +535,8 @@ def ingest_nuscenes(dataroot: str | Path, out: str | Path, *, version: str = "v1
                                                       writer.root, progress)
             if dropped:
                 reasons = ", ".join(f"{count} {why}" for why, count in dropped.items())
-                warnings.warn(f"{prediction_scenes_path(dataroot)}: dropped {sum(dropped.values())} prediction-"
-                              f"challenge entr{'y' if sum(dropped.values()) == 1 else 'ies'} ({reasons})",
-                              NuScenesWarning, stacklevel=2)
+                warn(f"{prediction_scenes_path(dataroot)}: dropped {sum(dropped.values())} prediction-challenge "
+                     f"entr{'y' if sum(dropped.values()) == 1 else 'ies'} ({reasons})")
             samples = _number_samples(sample_parts, pl.concat(slim_parts), mapping)
             if samples.height == 0:
                 source = "every agent's windows" if all_agents else str(prediction_scenes_path(dataroot))
@@ -581,3 +581,15 @@ def _lineage(dataroot: Path, version: str, devkit: Devkit, all_agents: bool, map
         "maps": ({"m_per_px": nuscenes_maps.M_PER_PX, "margin_m": nuscenes_maps.MARGIN_M,
                   "grey_levels": nuscenes_maps.GREY_LEVELS} if has_maps else None),
     }
+
+
+def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
+    """The line after the ingest: scenes, rows, samples per split, groups and whether there are maps."""
+    splits = ", ".join(f"{row['split']} {row['samples']}" for row in summary["samples_by_fold_and_split"])
+    maps = "with maps" if summary["has_map"] else "no maps"
+    return styled(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
+                  f"{summary['samples']} samples ({splits}), {summary['groups']} groups, {maps}")
+
+
+ADAPTER = Ingest(name="nuscenes", dataset=DATASET, dt=DT, folds=None, raw="the nuScenes root (DATAROOT)",
+                 function=ingest_nuscenes, summary=wrote_line)

@@ -31,7 +31,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +41,7 @@ from PIL import Image
 from rich.progress import Progress
 
 from ..errors import DataError
+from .base import warn
 
 #: metres per pixel of the rasters (the resolution of the official nuScenes semantic maps)
 M_PER_PX = 0.1
@@ -218,10 +218,6 @@ def write_png(grey: np.ndarray, path: Path) -> None:
     Image.fromarray(grey, mode="L").save(path, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
 
 
-class NuScenesWarning(UserWarning):
-    """Something the nuScenes ingest could not do but worked around (no map expansion, dropped entries)."""
-
-
 @dataclass(frozen=True)
 class MapRef:
     """What the scenes table records about one scene's raster."""
@@ -237,7 +233,7 @@ def rasterise_scene_maps(map_class: Any, dataroot: Path, locations: dict[str, st
     """Rasterise every scene whose location has a map expansion into ``out_root/maps/<scene_id>.png``.
 
     `locations` maps scene ids to map locations and `bounds` to the box of their track positions. One location's
-    expansion is held in memory at a time. Locations without an expansion produce a :class:`NuScenesWarning`
+    expansion is held in memory at a time. Locations without an expansion produce a warning (:func:`.base.warn`)
     and no map (the whole dataset has none when the expansion is absent).
     """
     by_location: dict[str, list[str]] = {}
@@ -246,14 +242,13 @@ def rasterise_scene_maps(map_class: Any, dataroot: Path, locations: dict[str, st
     present = [loc for loc in sorted(by_location) if expansion_path(dataroot, loc).is_file()]
     expansion_dir = dataroot / "maps" / "expansion"
     if not present:
-        warnings.warn(f"{expansion_dir}: map expansion not found; the dataset gets no maps ({EXPANSION_HINT} to "
-                      "rasterise drivable area, walkways and crossings)", NuScenesWarning, stacklevel=3)
+        warn(f"{expansion_dir}: map expansion not found; the dataset gets no maps ({EXPANSION_HINT} to rasterise "
+             "drivable area, walkways and crossings)")
         return {}
     absent = [loc for loc in sorted(by_location) if loc not in present]
     if absent:
         count = sum(len(by_location[loc]) for loc in absent)
-        warnings.warn(f"{expansion_dir}: no map expansion for {', '.join(absent)}; its {count} scene(s) get no map",
-                      NuScenesWarning, stacklevel=3)
+        warn(f"{expansion_dir}: no map expansion for {', '.join(absent)}; its {count} scene(s) get no map")
     task = progress.add_task("rasterising maps", total=sum(len(by_location[loc]) for loc in present)) \
         if progress is not None else None
     refs: dict[str, MapRef] = {}

@@ -72,11 +72,14 @@ from typing import Any
 import numpy as np
 import polars as pl
 from PIL import Image, UnidentifiedImageError
+from rich.text import Text
 
 from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util import input_files
-from ..util.progress import make_progress, say
+from ..util.progress import make_progress, styled
+from .base import Ingest, collect_warnings, warn
+from .folds import ceiled_share, fold_arrays
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
 from .textfile import MAX_MAGNITUDE, csv_record_line, in_range, range_problem
 from .windows import GROUP_TOLERANCE_M, _window_hashes
@@ -165,12 +168,6 @@ class RecordingResult:
     scene: dict[str, Any]
     samples: pl.DataFrame
     summary: dict[str, Any] = field(default_factory=dict)
-
-
-def _warn(message: str, warnings: list[str]) -> None:
-    """Show a warning on stderr (even under --quiet: it changes what the dataset holds) and keep it."""
-    warnings.append(message)
-    say(("warning:", "bold yellow"), f" {message}")
 
 
 # --------------------------------------------------------------------------------------------- discovering input
@@ -389,8 +386,7 @@ def resample(raw: pl.DataFrame, tracks_meta: pl.DataFrame, meta: RecordingMeta, 
 # ---------------------------------------------------------------------------------------------------------- maps
 
 
-def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks: pl.DataFrame,
-                   warnings: list[str]) -> dict[str, Any]:
+def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks: pl.DataFrame) -> dict[str, Any]:
     """Store the recording's background as a grey-scale PNG under root/maps (once per distinct image) and return
     the scene's map columns. Warns when the tracks do not fall on the image under the levelX convention."""
     path = recording.path("background.png")
@@ -414,9 +410,9 @@ def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks
         inside = tracks.select(((pl.col("x") * affine[0]).is_between(-0.5, width - 0.5)
                                 & (pl.col("y") * affine[4]).is_between(-0.5, height - 0.5)).mean()).item()
         if inside < MIN_INSIDE_IMAGE:
-            _warn(f"{path}: only {inside:.0%} of the positions fall on the image with metres per pixel = "
+            warn(f"{path}: only {inside:.0%} of the positions fall on the image with metres per pixel = "
                   f"orthoPxToMeter * {BACKGROUND_SCALE_DOWN} and pixel = (x, -y) / scale; map crops may be "
-                  "misaligned", warnings)
+                  "misaligned")
     return {"map_path": name, "map_m_per_px": metres, "map_world_to_px": affine}
 
 
@@ -624,11 +620,7 @@ def assign_splits(samples: pl.DataFrame) -> pl.DataFrame:
     first = pl.col("sample_id").min().over("scene_id", target)
     samples = samples.with_columns(situation_id=first.rank("dense").cast(pl.Int64) - 1)
     count = int(samples.get_column("situation_id").max() or 0) + 1
-    rng = np.random.default_rng(SPLIT_SEED)
-    fold_of = np.empty(count, dtype=np.int64)
-    fold_of[rng.permutation(count)] = np.arange(count) % FOLDS
-    is_val = np.zeros(count, dtype=bool)
-    is_val[rng.permutation(count)[:math.ceil(VAL_FRACTION * count)]] = True
+    fold_of, is_val = fold_arrays(count, FOLDS, ceiled_share(count, VAL_FRACTION), SPLIT_SEED)
     situation = samples.get_column("situation_id").to_numpy()
     return samples.with_columns(
         fold=pl.Series(fold_of[situation].astype(str), dtype=pl.String),
@@ -639,8 +631,8 @@ def assign_splits(samples: pl.DataFrame) -> pl.DataFrame:
 # ----------------------------------------------------------------------------------------------------- pipeline
 
 
-def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.DataFrame, recording: Recording,
-              warnings: list[str]) -> RoundaboutGeometry | None:
+def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.DataFrame,
+              recording: Recording) -> RoundaboutGeometry | None:
     """The configured geometry of the recording's location, else one inferred from its traffic (None + warning
     when there is too little circulating traffic to infer it)."""
     given = geometry_for(config, meta.location_id)
@@ -649,11 +641,11 @@ def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.Dat
     try:
         return infer_geometry(motor_tracks(tracks), DT, where=str(recording.path("tracks.csv")))
     except GeometryError as error:
-        _warn(f"{error}; recording {recording.number:02d} contributes no samples", warnings)
+        warn(f"{error}; recording {recording.number:02d} contributes no samples")
         return None
 
 
-def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig | None, warnings: list[str],
+def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig | None,
                      step: Callable[[str], None] = lambda _: None) -> RecordingResult:
     """Read, check, resample and search one recording; store its map under `root`.
 
@@ -666,9 +658,9 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
     tracks = resample(raw, tracks_meta, meta, recording)
     del raw
     step("map")
-    map_columns = background_map(recording, meta, root, tracks, warnings)
+    map_columns = background_map(recording, meta, root, tracks)
     step("scenarios")
-    used = _geometry(geometry, meta, tracks, recording, warnings)
+    used = _geometry(geometry, meta, tracks, recording)
     situations = extract_situations(tracks, used) if used is not None else None
     after_critical = 0
     if situations is not None:
@@ -677,8 +669,8 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
         situations = situations.filter(~pl.col("after_critical"))
     if situations is not None and situations.height == 0:
         dropped = f" ({after_critical} found too late, at or after their critical time)" if after_critical else ""
-        _warn(f"{recording.path('tracks.csv')}: no gap-acceptance situation (a vehicle entering while another "
-              f"circulates towards its arm){dropped}; the recording contributes no samples", warnings)
+        warn(f"{recording.path('tracks.csv')}: no gap-acceptance situation (a vehicle entering while another "
+              f"circulates towards its arm){dropped}; the recording contributes no samples")
     step("groups")
     if situations is not None and situations.height:
         samples = situation_samples(situations, recording.scene_id)
@@ -713,9 +705,8 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
     raw, out = Path(raw), Path(out)
     selected = discover_recordings(raw, recordings)
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
-    warnings: list[str] = []
     scenes, sample_parts, summaries = [], [], []
-    with DatasetWriter(out, meta, overwrite=overwrite, shard_rows=SHARD_ROWS) as writer:
+    with collect_warnings() as warnings, DatasetWriter(out, meta, overwrite=overwrite, shard_rows=SHARD_ROWS) as writer:
         with make_progress(quiet) as progress:
             for recording in selected:
                 name = f"recording {recording.number:02d}"
@@ -724,7 +715,7 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
                 def step(stage: str, task: Any = task, name: str = name) -> None:
                     progress.update(task, advance=1, description=f"{name}: {stage}")
 
-                result = ingest_recording(recording, writer.root, geometry, warnings, step)
+                result = ingest_recording(recording, writer.root, geometry, step)
                 writer.add_tracks(result.tracks)
                 scenes.append(result.scene)
                 summaries.append(result.summary)
@@ -734,7 +725,7 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
             samples = assign_splits(pl.concat(sample_parts))
         else:
             samples = pl.DataFrame(schema=SAMPLE_SCHEMA)
-            _warn(f"{raw}: no gap-acceptance situation in any recording; the dataset has no samples", warnings)
+            warn(f"{raw}: no gap-acceptance situation in any recording; the dataset has no samples")
         scene_table = pl.DataFrame(scenes, schema_overrides=SCENE_SCHEMA)
         writer.finish(scene_table, samples, lineage={
             "raw": str(raw.resolve()), "n_past": N_PAST, "n_future": N_FUTURE, "n_future_max": N_FUTURE_MAX,
@@ -744,3 +735,14 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
             "background_scale_down": BACKGROUND_SCALE_DOWN, "folds": FOLDS, "val_fraction": VAL_FRACTION,
             "split_seed": SPLIT_SEED, "recordings": summaries, "warnings": warnings})
     return out
+
+
+def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
+    """The line after the ingest: recordings, rows, samples (two per target/ego pair), folds and maps."""
+    return styled(("wrote", "green"), f" {out}: {summary['scenes']} recordings, {summary['track_rows']} track rows, "
+                  f"{summary['samples']} samples ({summary['samples'] // 2} target/ego pairs), "
+                  f"{len(summary['folds'])} folds, maps: {summary['has_map']}")
+
+
+ADAPTER = Ingest(name="round", dataset=DATASET, dt=DT, folds=tuple(str(fold) for fold in range(FOLDS)),
+                 raw="the folder of levelX rounD recordings", function=ingest_round, summary=wrote_line)
