@@ -1,29 +1,6 @@
-"""Rasterised nuScenes maps: each scene's surroundings from the map expansion as one grey-scale PNG.
-
-The nuScenes map expansion (``maps/expansion/<location>.json``, v1.3) holds vector layers; the devkit's
-``NuScenesMap.get_map_mask`` rasterises them. For every scene we rasterise the axis-aligned box around all of its
-track positions plus :data:`MARGIN_M` metres, north up, at :data:`M_PER_PX` metres per pixel, and paint three
-layers into one 8-bit grey image (later layers overwrite earlier ones, so a crossing on the road reads as a
-crossing):
-
-=============== ===========
-layer           grey level
-=============== ===========
-(nothing)       0
-walkway         85
-drivable_area   170
-ped_crossing    255
-=============== ===========
-
-The scenes table records the file (``maps/<scene_id>.png``), ``map_m_per_px`` and ``map_world_to_px``, the affine
-``[a, b, c, d, e, f]`` with ``px = a x + b y + c`` (column) and ``py = d x + e y + f`` (row) for global x / y in
-metres; integer pixel coordinates are pixel centres. Since rows grow southwards, ``e`` is negative. A scene whose
-box would exceed :data:`MAX_SIDE_PX` pixels on a side is rasterised more coarsely (its own ``map_m_per_px`` says
-so) to keep memory bounded; real nuScenes scenes (20 s) fit at 0.1 m/px.
-
-One location's expansion is held in memory at a time. ``get_map_mask`` rebuilds every polygon of a layer on each
-call; a :class:`LayerIndex` of record bounding boxes (computed once per location) lets each scene hand it only
-the records that reach its box, which gives the identical raster much faster on city-sized maps.
+"""Rasterised nuScenes maps: each scene's surroundings from the map expansion as one grey-scale PNG (walkway,
+drivable area, crossings), one location's expansion in memory at a time; grey levels and the affine in
+docs/datasets/nuscenes.md.
 """
 
 from __future__ import annotations

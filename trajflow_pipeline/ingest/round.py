@@ -1,61 +1,6 @@
-"""`trajflow ingest round`: rounD (levelX format) gap-acceptance scenarios as a unified Parquet dataset, with maps.
-
-Input, per recording XX (25 Hz): ``XX_recordingMeta.csv``, ``XX_tracksMeta.csv``, ``XX_tracks.csv`` and
-``XX_background.png``. A folder (or its ``data/`` sub-folder), a selection of its recordings, or one recording's
-file may be given. Recordings are read, resampled, searched and written one at a time, so memory is bounded by
-one recording (plus the writer's shard buffer), never by the dataset.
-
-Tracks: every road user of every recording, resampled from 25 Hz to dt = 0.2 s by keeping every 5th raw frame
-(frame = raw frame / 5); class -> agent_type (car, van, truck, bus, trailer -> vehicle; motorcycle; bicycle;
-pedestrian; anything else -> unknown; the raw class is kept in ``agent_class``); heading in radians wrapped to
-[-pi, pi); vx / vy from xVelocity / yVelocity; length / width from the tracks file.
-
-Samples follow the gap-acceptance definition of Schumann et al. (2023) for rounD, which TrajFlow (section VI-A)
-evaluates on, applied to the 5 Hz tracks and a :class:`RoundaboutGeometry` (inferred per recording from its
-circulating traffic unless given per location):
-
-* target: a motor vehicle (car, van, truck, bus, motorcycle) that starts more than ``approach_margin`` outside the
-  carriageway (r > R + margin), enters it (r < R; the first such frame is t_A) and never drives over the island;
-* its entry direction phi is the direction of its approach arm (from where it reaches R + margin back to its
-  first position); angles psi of other vehicles are measured from phi in the circulation direction;
-* ego: another motor vehicle, present by t_A, that enters the conflict zone (r <= R, 0 < psi < conflict_angle,
-  i.e. the carriageway just downstream of the target's arm) from inside the carriageway at frame t_C while the
-  target is recorded. t_C <= t_A: the target let the ego pass (a *rejected* gap; every such ego is a situation);
-  the first ego with t_C > t_A is the one the target cut in front of (the *accepted* gap);
-* decision: t_A for an accepted gap, t_C for a rejected one. The gap is open (undecided) while the ego circulates
-  in position (R - ego_band <= r <= R) upstream of the arm (psi < 0) and the target is still outside (r > R);
-  t_S is the first frame of the last undecided run before the decision;
-* prediction time t0 = max(t_S, first frame with 15 past frames of both vehicles) (the framework's ``start``
-  prediction time, relaxed to have a full past); kept when t0 < decision and both vehicles are recorded for 25
-  more frames;
-* critical time t_crit (the framework's ``t_crit``, :func:`critical_frames`): the first frame in [t_S, decision)
-  at which the ego -- the vehicle offering the gap, for whose planning the prediction is made -- can no longer
-  stop before the conflict zone by braking at CRITICAL_DECELERATION (4 m/s^2): its distance to the zone is
-  below its braking distance v^2 / (2 a). A prediction made then comes too late to act on, so a situation with
-  t0 >= t_crit is dropped (the framework's default ``exclude_post_crit``); without such a frame t_crit is
-  undefined and nothing is dropped. The counts per recording are in the lineage (``excluded_after_critical``);
-* both target and ego are predicted: two samples with the same ``t0_frame`` and ``joint_id``; every other road
-  user present at t0 is context (the tracks hold them with their classes);
-* horizon: ``n_future`` = 25 for every sample (the model's trained horizon); ``n_future_max`` is the horizon the
-  decision needs, as in the framework: max(25, min(2 * n_past, t_C - t0) + 5) steps, i.e. until 1 s after the ego
-  would reach the conflict zone, at most 35, and at most what both tracks hold. The tracks hold every row, so a
-  loader can read ``n_future_max`` future positions to test extrapolation.
-
-Extra sample columns: ``role`` (target / ego), ``partner_id`` (the other predicted vehicle), ``gap`` (accepted /
-rejected), ``decision_frame``, ``conflict_frame`` (t_C), ``critical_frame`` (t_crit, null where undefined),
-``entry_arm`` (index into the geometry's entry arms, -1 if none), ``n_future_max`` and ``situation_id``.
-
-Folds: a situation is one target's entering manoeuvre -- every gap it rejected and the one it accepted, each with
-its ego (``situation_id``). Situations are dealt round-robin into folds "0".."4" in a seeded random order and a
-seeded 10 % of them are ``val``, the rest ``train`` (protocol ``folds``), so the two samples of a pair and the
-overlapping samples of one target never straddle folds. (An ego may still appear in another target's situation
-in another fold; linking those too chains busy periods of a recording into a few giant situations and leaves the
-folds unbalanced.)
-
-Maps: each background image is converted to grey-scale and stored once (by content) as ``maps/<hash>.png``;
-``scenes.map_m_per_px`` = orthoPxToMeter * 10 (the levelX tools show rounD backgrounds downscaled by 10) and
-``scenes.map_world_to_px`` = [1/s, 0, 0, 0, -1/s, 0] (image rows grow downwards while y grows upwards; pixel
-coordinates are integers at pixel centres).
+"""`trajflow ingest round`: rounD (levelX) gap-acceptance scenarios as a unified Parquet dataset, with maps: target
+and ego of every accepted or rejected gap, 15 past / 25 (up to 35) future steps at 0.2 s, 5 folds of whole
+situations. The specification (scenario definition, horizons, folds, maps): docs/datasets/round.md.
 """
 
 from __future__ import annotations
