@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from trajflow_pipeline.stages.ingest_eth_ucy import (FOLDS, SEQUENCES, STANDARD_VAL_START_RAW_FRAME,
-                                                     ingest_eth_ucy)
+from trajflow_pipeline.ingest.eth_ucy import (FOLDS, SEQUENCES, STANDARD_VAL_START_RAW_FRAME,
+                                              ingest_eth_ucy)
 from trajflow_pipeline.schemas import open_dataset
 
 N_PAST, N_FUTURE, STEP = 8, 12, 10

@@ -48,7 +48,7 @@ def _peak_rss_mib() -> float:
 
 def _child(job: str, root: str, out: str, queue: multiprocessing.Queue) -> None:
     """Run one job in a fresh process and send back (seconds, peak RSS in MiB)."""
-    from trajflow_pipeline.stages.ingest_nuscenes import ingest_nuscenes, load_devkit, open_release
+    from trajflow_pipeline.ingest.nuscenes import ingest_nuscenes, load_devkit, open_release
 
     warnings.simplefilter("ignore")  # "no map expansion" under --no-maps is expected here
     devkit = load_devkit()

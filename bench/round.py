@@ -57,7 +57,7 @@ def random_traffic(seed: int, vehicles: int, pedestrians: int, minutes: float) -
 def child(raw: str, out: str, recordings: list[str]) -> None:
     """Run one ingest in this process and print its wall time, peak RSS and sample count as JSON."""
     from trajflow_pipeline.schemas import open_dataset
-    from trajflow_pipeline.stages.ingest_round import ingest_round
+    from trajflow_pipeline.ingest.round import ingest_round
 
     start = time.perf_counter()
     ingest_round(raw, out, recordings=recordings or None, overwrite=True, quiet=True)

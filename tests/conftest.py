@@ -45,7 +45,7 @@ def eth_ucy_raw() -> Path:
 @pytest.fixture(scope="session")
 def eth_ucy_dataset(eth_ucy_raw: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The shared ETH/UCY copy ingested once per test session."""
-    from trajflow_pipeline.stages.ingest_eth_ucy import ingest_eth_ucy
+    from trajflow_pipeline.ingest.eth_ucy import ingest_eth_ucy
 
     return ingest_eth_ucy(eth_ucy_raw, tmp_path_factory.mktemp("eth") / "eth_ucy", quiet=True)
 
@@ -53,7 +53,7 @@ def eth_ucy_dataset(eth_ucy_raw: Path, tmp_path_factory: pytest.TempPathFactory)
 @pytest.fixture(scope="session")
 def synthetic_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small synthetic bimodal dataset (600 samples)."""
-    from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+    from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 
     return ingest_synthetic_bimodal(tmp_path_factory.mktemp("syn") / "bimodal", samples=600, seed=3, quiet=True)
 

@@ -16,9 +16,9 @@ from trajflow_pipeline.cli.forking_cmd import augment_forking_command, augment_s
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
 from trajflow_pipeline.stages.augment import augment_forking, draw_forking
-from trajflow_pipeline.stages.ingest_forking_paths import ingest_forking_paths
-from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
-from trajflow_pipeline.stages.windows import identical_input_groups
+from trajflow_pipeline.ingest.forking_paths import ingest_forking_paths
+from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
+from trajflow_pipeline.ingest.windows import identical_input_groups
 
 runner = CliRunner()
 cli = typer.Typer()

@@ -15,7 +15,7 @@ from trajflow_pipeline.cli.forking_cmd import augment_scale_rotate_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import PROTOCOL_FIXED, DatasetMeta, DatasetWriter, open_dataset
 from trajflow_pipeline.stages.augment import augment_scale_rotate, draw_scale_rotate
-from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 
 runner = CliRunner()
 cli = typer.Typer()

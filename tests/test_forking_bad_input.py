@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from trajflow_pipeline.cli.forking_cmd import ingest_forking_paths_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_forking_paths import ingest_forking_paths
+from trajflow_pipeline.ingest.forking_paths import ingest_forking_paths
 
 runner = CliRunner()
 cli = typer.Typer()

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from trajflow_pipeline.stages.ingest_forking_paths import cam4_metres_per_pixel, default_fps
+from trajflow_pipeline.ingest.forking_paths import cam4_metres_per_pixel, default_fps
 
 BOX_W, BOX_H = 20.0, 40.0
 ORIGIN_PX = (900.0, 600.0)

@@ -12,9 +12,9 @@ from test_forking_fixture import ORIGIN_PX, PERSON_ID, VEHICLE_ID, Moment, defau
 from trajflow_pipeline.data import list_folds, load_problems
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_forking_paths import (VEHICLE_ID_OFFSET, cam4_metres_per_pixel,
-                                                           ingest_forking_paths)
-from trajflow_pipeline.stages.windows import identical_input_groups
+from trajflow_pipeline.ingest.forking_paths import (VEHICLE_ID_OFFSET, cam4_metres_per_pixel,
+                                                    ingest_forking_paths)
+from trajflow_pipeline.ingest.windows import identical_input_groups
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from trajflow_pipeline.cli.app import app
-from trajflow_pipeline.stages.ingest_eth_ucy import SEQUENCES
+from trajflow_pipeline.ingest.eth_ucy import SEQUENCES
 
 runner = CliRunner()
 

@@ -14,7 +14,7 @@ from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.data import list_folds, select_samples
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_csv import ColumnMap, ingest_csv
+from trajflow_pipeline.ingest.csv import ColumnMap, ingest_csv
 
 runner = CliRunner()
 

@@ -12,8 +12,8 @@ import pytest
 from trajflow_pipeline.data import list_folds, load_problems, select_samples
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import data_mismatch, open_dataset
-from trajflow_pipeline.stages.ingest_eth_ucy import (FOLDS, SEQUENCES, STANDARD_VAL_START_RAW_FRAME,
-                                                     discover_sources, ingest_eth_ucy)
+from trajflow_pipeline.ingest.eth_ucy import (FOLDS, SEQUENCES, STANDARD_VAL_START_RAW_FRAME,
+                                              discover_sources, ingest_eth_ucy)
 
 WINDOW = 20  # 8 past + 12 future
 

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.data import load_problems
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_synthetic import N_FUTURE, N_PAST, base_trajectories, ingest_synthetic_bimodal
+from trajflow_pipeline.ingest.synthetic import N_FUTURE, N_PAST, base_trajectories, ingest_synthetic_bimodal
 
 
 def files(root: Path) -> dict[str, bytes]:

@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from trajflow_pipeline.cli.app import app
-from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.util.progress import say
 
 LOOKS_LIKE_MARKUP = "run[1].csv:100: [red]x[/] :smile: [bold] [/ab]"

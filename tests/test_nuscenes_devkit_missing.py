@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from trajflow_pipeline.cli.nuscenes_cmd import ingest_nuscenes_command
 from trajflow_pipeline.errors import TrajflowError
-from trajflow_pipeline.stages.ingest_nuscenes import ingest_nuscenes
+from trajflow_pipeline.ingest.nuscenes import ingest_nuscenes
 
 
 @pytest.fixture()

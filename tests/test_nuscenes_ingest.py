@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -18,18 +17,17 @@ from nuscenes_fixture import (SMALL_CHALLENGE, AgentSpec, MapRects, Release, Sce
                               small_scenes, write_expansion, write_release)
 
 from trajflow_pipeline.data import load_problems  # noqa: E402
+from trajflow_pipeline.ingest.base import collect_warnings  # noqa: E402
+from trajflow_pipeline.ingest.nuscenes import EGO_AGENT_ID, agent_type_of, ingest_nuscenes, quaternion_yaw  # noqa: E402
 from trajflow_pipeline.schemas import open_dataset  # noqa: E402
-from trajflow_pipeline.stages.ingest_nuscenes import (EGO_AGENT_ID, NuScenesWarning, agent_type_of,  # noqa: E402
-                                                      ingest_nuscenes, quaternion_yaw)
 from trajflow_pipeline.stages.inspect import summarize  # noqa: E402
 
 
 def ingest(release: Release, out: Path, **options) -> tuple[Path, list[str]]:
     """Ingest quietly, returning the dataset path and the messages of the ingest's own warnings."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with collect_warnings() as messages:
         path = ingest_nuscenes(release.root, out, version=release.version, quiet=True, **options)
-    return path, [str(w.message) for w in caught if issubclass(w.category, NuScenesWarning)]
+    return path, messages
 
 
 @pytest.fixture(scope="module")
@@ -293,8 +291,8 @@ def test_small_scenes_fixture_is_what_the_issue_asks_for() -> None:
 
 def test_layer_index_gives_the_devkits_raster(tmp_path: Path) -> None:
     """Handing get_map_mask only the records near a scene changes nothing in the raster."""
-    from trajflow_pipeline.stages import nuscenes_maps
-    from trajflow_pipeline.stages.ingest_nuscenes import load_devkit
+    from trajflow_pipeline.ingest import nuscenes_maps
+    from trajflow_pipeline.ingest.nuscenes import load_devkit
 
     rng = np.random.default_rng(1)
 

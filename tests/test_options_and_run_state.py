@@ -19,7 +19,7 @@ from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.model import load_training_state, save_training_state
 from trajflow_pipeline.model.config import load_config
-from trajflow_pipeline.stages.ingest_synthetic import ingest_synthetic_bimodal
+from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.stages.train import train
 from trajflow_pipeline.util.bounds import check_seed
 

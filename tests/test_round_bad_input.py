@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 from trajflow_pipeline.cli.round_cmd import ingest_round_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_round import ingest_round
-from trajflow_pipeline.stages.round_geometry import RoundaboutGeometry, load_geometry_file
+from trajflow_pipeline.ingest.round import ingest_round
+from trajflow_pipeline.ingest.round_geometry import RoundaboutGeometry, load_geometry_file
 
 
 @pytest.fixture

@@ -14,9 +14,9 @@ import pytest
 from test_round_synth import CENTRE, EGO_REJECT, SIZES, TARGET_REJECT, Track, gap_scenario, write_recording
 
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_round import (CRITICAL_DECELERATION, DT, N_PAST, critical_frames,
-                                                   ingest_round)
-from trajflow_pipeline.stages.round_geometry import RoundaboutGeometry
+from trajflow_pipeline.ingest.round import (CRITICAL_DECELERATION, DT, N_PAST, critical_frames,
+                                            ingest_round)
+from trajflow_pipeline.ingest.round_geometry import RoundaboutGeometry
 
 GEOMETRY = RoundaboutGeometry(centre_x=CENTRE[0], centre_y=CENTRE[1], inner_radius=10.5, outer_radius=13.5)
 KEY = ["target_id", "ego_id", "conflict_frame"]

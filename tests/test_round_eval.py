@@ -24,7 +24,7 @@ from trajflow_pipeline.model.encoders import MapEncoder
 from trajflow_pipeline.schemas import open_dataset
 from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
 from trajflow_pipeline.stages.experiment import load_experiment
-from trajflow_pipeline.stages.ingest_round import N_FUTURE, ingest_round
+from trajflow_pipeline.ingest.round import N_FUTURE, ingest_round
 from trajflow_pipeline.rundir import open_run
 from trajflow_pipeline.stages.train import train
 

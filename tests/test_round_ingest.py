@@ -21,8 +21,8 @@ from trajflow_pipeline.cli.round_cmd import ingest_round_command
 from trajflow_pipeline.data.loader import build_problems, list_folds, load_problems
 from trajflow_pipeline.data.maps import crops_for_problems, past_headings
 from trajflow_pipeline.schemas import open_dataset
-from trajflow_pipeline.stages.ingest_round import N_FUTURE, N_PAST, assign_splits, ingest_round
-from trajflow_pipeline.stages.round_geometry import (RoundaboutGeometry, infer_geometry, load_geometry_file)
+from trajflow_pipeline.ingest.round import N_FUTURE, N_PAST, assign_splits, ingest_round
+from trajflow_pipeline.ingest.round_geometry import (RoundaboutGeometry, infer_geometry, load_geometry_file)
 
 RECORDINGS = 3
 

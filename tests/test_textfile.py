@@ -8,7 +8,7 @@ import polars as pl
 import pytest
 
 from trajflow_pipeline.errors import DataError
-from trajflow_pipeline.stages.textfile import read_numeric_table, read_numeric_tables
+from trajflow_pipeline.ingest.textfile import read_numeric_table, read_numeric_tables
 
 COLUMNS = ("frame", "ped", "x", "y")
 

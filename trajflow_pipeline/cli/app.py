@@ -78,15 +78,6 @@ def _root(
     _set_threads(ctx.invoked_subcommand, threads)
 
 
-def _done(out: Path, quiet: bool) -> None:
-    if not quiet:
-        from ..stages.inspect import summarize
-
-        summary = summarize(out)
-        say(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
-            f"{summary['samples']} samples, {summary['groups']} groups")
-
-
 @ingest_app.command("eth-ucy")
 def ingest_eth_ucy_command(
     raw: Annotated[Path, typer.Argument(help="The Trajectron++ layout (<location>/{train,val,test}/*.txt) or a "
@@ -96,10 +87,11 @@ def ingest_eth_ucy_command(
     quiet: Quiet = False,
 ) -> None:
     """ETH/UCY pedestrians: leave-one-location-out folds, 8 past + 12 future steps at 0.4 s."""
-    from ..stages.ingest_eth_ucy import ingest_eth_ucy
+    from ..ingest.registry import get_ingest
 
     with user_errors():
-        _done(ingest_eth_ucy(raw, out, overwrite=overwrite, quiet=quiet), quiet)
+        adapter = get_ingest("eth-ucy")
+        adapter.report(adapter.run(raw, out, overwrite=overwrite, quiet=quiet), quiet)
 
 
 @ingest_app.command("synthetic-bimodal")
@@ -111,10 +103,11 @@ def ingest_synthetic_command(
     quiet: Quiet = False,
 ) -> None:
     """The paper's synthetic bimodal set: one past of 10 steps, two future modes of 14 steps at 0.25 s."""
-    from ..stages.ingest_synthetic import ingest_synthetic_bimodal
+    from ..ingest.registry import get_ingest
 
     with user_errors():
-        _done(ingest_synthetic_bimodal(out, samples=samples, seed=seed, overwrite=overwrite, quiet=quiet), quiet)
+        adapter = get_ingest("synthetic-bimodal")
+        adapter.report(adapter.run(None, out, samples=samples, seed=seed, overwrite=overwrite, quiet=quiet), quiet)
 
 
 @ingest_app.command("csv")
@@ -148,14 +141,16 @@ def ingest_csv_command(
     quiet: Quiet = False,
 ) -> None:
     """Bring-your-own trajectories from a CSV or Parquet table."""
-    from ..stages.ingest_csv import ColumnMap, ingest_csv
+    from ..ingest.csv import ColumnMap
+    from ..ingest.registry import get_ingest
 
     with user_errors():
-        result = ingest_csv(file, out, dt=dt, columns=ColumnMap.parse(columns), n_past=past, n_future=future,
-                            dataset=name, split_col=split_col, folds=folds, val_fraction=val_fraction,
-                            protocol=protocol, split_by=split_by, test_fraction=test_fraction, seed=seed,
-                            overwrite=overwrite, quiet=quiet)
-        _done(result, quiet)
+        adapter = get_ingest("csv")
+        result = adapter.run(file, out, dt=dt, columns=ColumnMap.parse(columns), n_past=past, n_future=future,
+                             dataset=name, split_col=split_col, folds=folds, val_fraction=val_fraction,
+                             protocol=protocol, split_by=split_by, test_fraction=test_fraction, seed=seed,
+                             overwrite=overwrite, quiet=quiet)
+        adapter.report(result, quiet)
 
 
 @app.command("inspect")

@@ -12,7 +12,6 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import UsageError
-from ..util.progress import say
 from .common import Overwrite, Quiet, user_errors
 
 OutDir = Annotated[Path, typer.Option("--out", "-o", help="Dataset directory to write (created atomically).")]
@@ -39,17 +38,6 @@ def parse_per_scene(option: str, text: Optional[str]) -> float | dict[str, float
             from None
 
 
-def _summary(out: Path, quiet: bool) -> None:
-    """One line on stderr saying what was written (skipped under --quiet)."""
-    if quiet:
-        return
-    from ..stages.inspect import summarize
-
-    summary = summarize(out)
-    say(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
-        f"{summary['samples']} samples, {summary['groups']} groups")
-
-
 def ingest_forking_paths_command(
     raw: Annotated[Path, typer.Argument(help="The Forking Paths release root, its next_x_v1_dataset/ folder or "
                                              "the bbox/ folder of <scene>_<moment>_<xagent>_<dest>_<annotator>_<cam>"
@@ -68,13 +56,14 @@ def ingest_forking_paths_command(
     quiet: Quiet = False,
 ) -> None:
     """Forking Paths: several annotated futures per past, 8 past + 12 future steps at 0.4 s, 5-fold CV."""
-    from ..stages.ingest_forking_paths import ingest_forking_paths
+    from ..ingest.registry import get_ingest
 
     with user_errors():
-        result = ingest_forking_paths(raw, out, camera=camera, fps=parse_per_scene("--fps", fps),
-                                      scale=parse_per_scene("--scale", scale), folds=folds, seed=seed,
-                                      overwrite=overwrite, quiet=quiet)
-        _summary(result, quiet)
+        adapter = get_ingest("forking-paths")
+        result = adapter.run(raw, out, camera=camera, fps=parse_per_scene("--fps", fps),
+                             scale=parse_per_scene("--scale", scale), folds=folds, seed=seed, overwrite=overwrite,
+                             quiet=quiet)
+        adapter.report(result, quiet)
 
 
 def augment_forking_command(
@@ -92,13 +81,14 @@ def augment_forking_command(
     quiet: Quiet = False,
 ) -> None:
     """Augmented Forking Paths: each future plus scaled / rotated variants of its post-fork part (same group)."""
+    from ..ingest.base import report_written
     from ..stages.augment import augment_forking
 
     with user_errors():
         result = augment_forking(data, out, copies=copies, scale_std=scale_std, rot_std_deg=rot_std_deg,
                                  scale_range=scale_range, rot_range_deg=rot_range_deg, seed=seed,
                                  overwrite=overwrite, quiet=quiet)
-        _summary(result, quiet)
+        report_written(result, quiet)
 
 
 def augment_scale_rotate_command(
@@ -118,10 +108,11 @@ def augment_scale_rotate_command(
 
     Variants are marked train_only; evaluate on the source dataset.
     """
+    from ..ingest.base import report_written
     from ..stages.augment import augment_scale_rotate
 
     with user_errors():
         result = augment_scale_rotate(data, out, copies=copies, rot_std_deg=rot_std_deg, scale_std=scale_std,
                                       splits=tuple(split) if split else ("train",), seed=seed,
                                       overwrite=overwrite, quiet=quiet)
-        _summary(result, quiet)
+        report_written(result, quiet)

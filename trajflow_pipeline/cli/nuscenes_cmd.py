@@ -6,47 +6,12 @@ runs; a missing devkit is reported as one line saying how to install the extra.
 
 from __future__ import annotations
 
-import contextlib
-import warnings
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.text import Text
 
-from ..util.progress import say, styled
 from .common import Overwrite, Quiet, user_errors
-
-
-@contextlib.contextmanager
-def _show_ingest_warnings() -> Iterator[None]:
-    """Print the ingest's own warnings (no map expansion, dropped entries) as `warning: ...` lines on stderr."""
-    from ..stages.nuscenes_maps import NuScenesWarning
-
-    previous = warnings.showwarning
-
-    def show(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
-        if issubclass(category, NuScenesWarning):
-            say(("warning:", "bold yellow"), f" {message}")
-        else:
-            previous(message, category, filename, lineno, file, line)
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("always", NuScenesWarning)
-        warnings.showwarning = show
-        yield
-
-
-def _summary(out: Path) -> Text:
-    """One line saying what was written (scenes, rows, samples per split, maps)."""
-    from ..stages.inspect import summarize
-
-    summary = summarize(out)
-    splits = ", ".join(f"{row['split']} {row['samples']}" for row in summary["samples_by_fold_and_split"])
-    maps = "with maps" if summary["has_map"] else "no maps"
-    return styled(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
-                  f"{summary['samples']} samples ({splits}), {summary['groups']} groups, {maps}")
 
 
 def ingest_nuscenes_command(
@@ -64,10 +29,8 @@ def ingest_nuscenes_command(
 ) -> None:
     """nuScenes via nuscenes-devkit: prediction-challenge samples (4 past + 12 future at 0.5 s), ego vehicle, maps."""
     with user_errors():
-        from ..stages.ingest_nuscenes import ingest_nuscenes
+        from ..ingest.registry import get_ingest
 
-        with _show_ingest_warnings():
-            result = ingest_nuscenes(dataroot, out, version=version, all_agents=all_agents, overwrite=overwrite,
-                                     quiet=quiet)
-        if not quiet:
-            say(_summary(result))
+        adapter = get_ingest("nuscenes")
+        result = adapter.run(dataroot, out, version=version, all_agents=all_agents, overwrite=overwrite, quiet=quiet)
+        adapter.report(result, quiet)

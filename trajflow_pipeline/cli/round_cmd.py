@@ -7,7 +7,6 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..util.progress import say
 from .common import Overwrite, Quiet, user_errors
 
 
@@ -26,15 +25,11 @@ def ingest_round_command(
 ) -> None:
     """rounD gap-acceptance scenarios: entering target + circulating ego, 15 past / 25 (up to 35) future steps at
     0.2 s, 5 folds, background maps."""
-    from ..stages.inspect import summarize
-    from ..stages.ingest_round import ingest_round
-    from ..stages.round_geometry import load_geometry_file
+    from ..ingest.registry import get_ingest
+    from ..ingest.round_geometry import load_geometry_file
 
     with user_errors():
         config = load_geometry_file(geometry) if geometry is not None else None
-        result = ingest_round(raw, out, recordings=recording, geometry=config, overwrite=overwrite, quiet=quiet)
-        if not quiet:
-            summary = summarize(result)
-            say(("wrote", "green"), f" {result}: {summary['scenes']} recordings, {summary['track_rows']} track rows, "
-                f"{summary['samples']} samples ({summary['samples'] // 2} target/ego pairs), "
-                f"{len(summary['folds'])} folds, maps: {summary['has_map']}")
+        adapter = get_ingest("round")
+        result = adapter.run(raw, out, recordings=recording, geometry=config, overwrite=overwrite, quiet=quiet)
+        adapter.report(result, quiet)

@@ -62,6 +62,7 @@ import polars as pl
 
 from ..data import list_folds
 from ..errors import TrajflowError, UsageError
+from ..ingest.registry import NAMES, get_ingest
 from ..metrics.parallel import resolve_workers
 from ..model.config import MODEL_NAMES, RunConfig, load_config
 from ..model.models import MODEL_CLASSES
@@ -75,6 +76,7 @@ from ..util.progress import say
 from .evaluate import EvalOptions, evaluate
 from .train import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
 
+#: the registered ingests (ingest/registry.py) an experiment config may name: their options are plain TOML values
 INGESTS = ("synthetic-bimodal", "eth-ucy")
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
 
@@ -96,8 +98,17 @@ class ExperimentConfig:
     source: dict[str, Any] = field(default_factory=dict)
 
 
-#: options each ingest accepts in [data]
-INGEST_OPTIONS: dict[str | None, tuple[str, ...]] = {"synthetic-bimodal": ("samples", "seed"), "eth-ucy": ("raw",)}
+def _option_value(default: Any, value: Any) -> Any:
+    """A [data] option as its ingest takes it: of its default's type (samples = 3000.0 -> 3000)."""
+    return type(default)(value) if isinstance(default, (int, float, str)) and not isinstance(default, bool) else value
+
+
+def _ingest_options(name: str | None) -> tuple[str, ...]:
+    """The [data] keys of ingest `name` besides path and ingest: raw (when it reads raw input) and its options."""
+    if name is None:
+        return ()
+    adapter = get_ingest(name)
+    return (*(("raw",) if adapter.raw is not None else ()), *adapter.options)
 
 
 def _table(section: dict[str, Any], key: str, path: Path, name: str | None = None) -> dict[str, Any]:
@@ -147,8 +158,9 @@ def load_experiment(path: str | Path) -> ExperimentConfig:
         raise UsageError(f"{path}: [data] needs a path")
     ingest = data.get("ingest")
     if ingest is not None and ingest not in INGESTS:
-        raise UsageError(f"{path}: [data] ingest must be one of {', '.join(INGESTS)}, got {ingest!r}")
-    _unknown(data, {"path", "ingest", *INGEST_OPTIONS.get(ingest, ())}, "[data]", path)
+        raise UsageError(f"{path}: [data] ingest must be one of {', '.join(INGESTS)}, got {ingest!r} (registered "
+                         f"ingests: {', '.join(NAMES)}; make the others with `trajflow ingest NAME`)")
+    _unknown(data, {"path", "ingest", *_ingest_options(ingest)}, "[data]", path)
     if "seed" in data:
         check_seed(data["seed"], f"{path}: data.seed")
     models_section = _table(raw, "models", path)
@@ -199,17 +211,14 @@ def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:
         return config.data_path
     if config.ingest is None:
         raise TrajflowError(f"{config.data_path}: dataset not found and the experiment config names no ingest")
+    adapter = get_ingest(config.ingest)
     options = dict(config.ingest_options)
-    if config.ingest == "synthetic-bimodal":
-        from .ingest_synthetic import ingest_synthetic_bimodal
-
-        return ingest_synthetic_bimodal(config.data_path, samples=int(options.get("samples", 3000)),
-                                        seed=int(options.get("seed", 0)), quiet=quiet)
-    from .ingest_eth_ucy import ingest_eth_ucy
-
-    if "raw" not in options:
-        raise UsageError("[data] ingest = 'eth-ucy' needs raw = the raw ETH/UCY folder")
-    return ingest_eth_ucy(Path(options["raw"]), config.data_path, quiet=quiet)
+    raw = options.pop("raw", None)
+    if adapter.raw is not None and raw is None:
+        raise UsageError(f"[data] ingest = {adapter.name!r} needs raw = {adapter.raw}")
+    defaults = adapter.options
+    return adapter.run(None if raw is None else Path(raw), config.data_path, quiet=quiet,
+                       **{key: _option_value(defaults[key], value) for key, value in options.items()})
 
 
 def _folds(config: ExperimentConfig, data: Path) -> list[str | None]:

@@ -1,24 +1,5 @@
-"""Roundabout geometry for rounD gap-acceptance extraction: configuration, JSON files and inference from tracks.
-
-A :class:`RoundaboutGeometry` holds what the scenario definition needs, in the recording's own metric frame
-(levelX ``xCenter`` / ``yCenter``: x to the right, y up):
-
-* ``centre_x``, ``centre_y`` -- the centre of the central island;
-* ``inner_radius`` -- the island's edge as driven: a track that comes closer drives over the island and is no
-  target;
-* ``outer_radius`` -- the outer edge of the circulating carriageway: a vehicle closer than this is *inside* the
-  roundabout (the gap-acceptance framework of Schumann et al. calls it R);
-* ``direction`` -- +1 when traffic circulates counter-clockwise (right-hand traffic seen from above), -1 clockwise;
-* ``entry_angles`` -- polar angles (rad) at which vehicles enter the carriageway, one per entry arm;
-* the scenario constants that go with them: ``approach_margin`` (a target must start at least this far outside
-  the carriageway), ``conflict_angle`` (angular width of the conflict zone downstream of the target's arm) and
-  ``ego_band`` (a circulating ego is "in position" within this many metres inside ``outer_radius``).
-
-The known locations are *not* hard-coded: :func:`infer_geometry` fits the centre to circulating vehicles (each
-vehicle's centre of curvature, from its velocity and yaw rate, points at the roundabout centre while it
-circulates; a least-squares circle fit through those positions refines it), takes the radii from the spread of
-the circulating positions and clusters the angles where vehicles cross into the carriageway into entry arms.
-A user who knows better passes the geometry explicitly, per location (:func:`load_geometry_file`).
+"""Roundabout geometry for the rounD ingest: the :class:`RoundaboutGeometry` a scenario needs, read from a JSON file
+or inferred from circulating traffic (nothing is hard-coded per location); see docs/datasets/round.md.
 """
 
 from __future__ import annotations

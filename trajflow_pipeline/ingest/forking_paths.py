@@ -1,75 +1,6 @@
-"""`trajflow ingest forking-paths`: the Forking Paths multi-future release as a unified Parquet dataset.
-
-Input
-    The release's bounding-box annotations ``next_x_v1_dataset/bbox/*.json`` (the release root, the
-    ``next_x_v1_dataset`` folder or the ``bbox`` folder itself may be given). Each file name is
-    ``<scene>_<moment>_<xagentID>_<destIdx>_<annotatorID>_<cam>.json``; it is parsed from the right, because scene
-    names (zara01, eth, hotel, 0000, 0400, 0401, 0500) and moment ids are digits too: the last five ``_``-separated
-    fields are moment, x-agent id, destination index, annotator id and camera, everything before them is the scene
-    (so a scene name may even contain ``_``; an annotator id may not). Each file is a JSON list of records
-    ``{class_name: "Person" | "Vehicle", is_x_agent: 0 | 1, bbox: [x, y, w, h] (pixels), frame_id (0-based),
-    track_id}``. Only the chosen camera's files are read (default ``cam4``, the top-down view; the others are
-    ignored).
-
-Positions
-    The foot point of each box (bottom centre, ``(x + w / 2, y + h)``, the point the release's own
-    ``get_prepared_data_multifuture.py`` uses) times a per-scene scale in metres per pixel, with the image's y axis
-    flipped (``x_m = u * s``, ``y_m = -v * s``) so that the top-down view becomes a right-handed ground frame and
-    left turns stay left turns. Frame rate: 25 fps for the ETH/UCY scenes (zara*, eth*, hotel*), 30 fps for the
-    VIRAT scenes (release README); both overridable per scene.
-
-Default scale (cam4 only)
-    No metric calibration is published with the release, so the defaults are derived from the camera set-up the
-    release was rendered with (Multiverse ``forking_paths_dataset/code/utils.py``: ``recording_cameras``, whose
-    fourth entry is the top-down ``cam4``; ``record_annotation.py`` renders 1920 x 1080 images; CARLA's ``fov`` is
-    horizontal). For a pinhole camera at height ``h`` above the ground plane (assumed at z = 0) looking down at
-    pitch ``p``, the ground sampling distance at the image centre is
-    ``2 * (h / sin|p|) * tan(fov / 2) / 1920`` metres per pixel:
-
-    ======  ========  ========  =====  ==========
-    scene   height m  pitch     fov    m / px
-    ======  ========  ========  =====  ==========
-    zara01  54.80     -85.00    35     0.01807
-    eth     91.10     -80.00    50     0.04493
-    hotel   30.87     -88.96    50     0.01499
-    0000    48.22     -88.00    70     0.03519
-    0400    101.97    -83.87    55     0.05561
-    0401    70.71     -80.82    65     0.04753
-    0500    52.93     -78.60    70     0.03938
-    ======  ========  ========  =====  ==========
-
-    (zara02 shares zara01's cameras.) The scale is uniform over the image: perspective makes it vary by a few per
-    cent towards the borders of the less steep views, and the ground height of the edited CARLA maps is not
-    published. Pass ``scale`` (one number or one per scene) when a better calibration is known; other cameras have
-    no default and need it.
-
-Resampling to dt = 0.4 s
-    Every agent is resampled onto a 0.4 s grid anchored at the fork frame (below), so that the last observed step
-    is exactly the fork. When 0.4 s is a whole number of raw frames (10 at 25 fps, 12 at 30 fps) the grid picks
-    raw frames; otherwise positions are linearly interpolated between the two consecutive raw frames around each
-    grid time. A grid point whose raw frame(s) are not annotated is dropped for that agent. ``frame`` counts grid
-    steps (frame 0 is the first grid time at or after raw frame 0) and ``t`` is the grid point's time in seconds
-    since raw frame 0.
-
-Multi-future representation
-    All files of one ``<scene>_<moment>_<xagentID>`` (destinations x annotators) share one past. The fork is the
-    last raw frame up to which every annotated future places the x-agent at the same position (within
-    ``fork_tolerance`` metres); a moment with a single future (or futures that never diverge) forks at the
-    release's last observed frame (102 in the 25 fps scenes, 124 in the 30 fps ones). Each annotated future is its
-    own scene (``scene_id`` = file stem) holding the x-agent and all context agents (other people: pedestrian,
-    vehicles: vehicle, their agent ids offset by 1,000,000 so they never collide with people's track ids), and
-    one sample: the x-agent with 8 past steps ending at the fork (``t0_frame``) and 12 future steps. So that the
-    inputs of a group are identical, not merely close, every future of a moment takes its rows up to the fork from
-    the moment's first file (sorted by name); by construction the x-agent differs by less than the tolerance there.
-    All samples of a moment share ``group_id`` (numbered from the sorted moment keys); the ingest checks that
-    :func:`~trajflow_pipeline.stages.windows.identical_input_groups` finds exactly the same groups. A future whose
-    x-agent lacks the 8 + 12 grid steps around the fork is skipped and listed in the manifest's lineage
-    (``skipped``). Single-future groups are kept (JSD skips them later).
-
-Protocol ``folds``
-    5-fold cross-validation over groups (a whole moment is always in one fold, ``fold`` = "0".."4", assigned by a
-    seeded permutation), and a seeded 10 % of the groups are ``val`` (the rest ``train``) whenever their fold is not
-    the test fold.
+"""`trajflow ingest forking-paths`: the Forking Paths multi-future release as a unified Parquet dataset: the x-agent
+of every annotated future with a past shared by its moment (one group), 8 past + 12 future steps at 0.4 s, 5 folds
+of whole moments. The specification (file names, pixel scale, resampling, forks): docs/datasets/forking_paths.md.
 """
 
 from __future__ import annotations
@@ -83,14 +14,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import polars as pl
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util import input_files
 from ..util.bounds import check_seed
-from ..util.progress import make_progress, say
+from ..util.progress import make_progress
+from .base import Ingest, warn
+from .folds import assign_folds
 from .windows import identical_input_groups
 
 DATASET = "forking_paths"
@@ -519,19 +451,6 @@ def _per_scene(value: float | dict[str, float] | None, scenes: list[str], defaul
     return out
 
 
-def assign_folds(moments: list[str], folds: int, val_fraction: float, seed: int) -> pl.DataFrame:
-    """moment -> group_id (sorted order), fold ("0".."folds-1", seeded, balanced) and split (seeded val groups)."""
-    n = len(moments)
-    rng = np.random.default_rng(seed)
-    fold = np.empty(n, dtype=np.int64)
-    fold[rng.permutation(n)] = np.arange(n) % folds
-    n_val = max(1, round(val_fraction * n)) if n >= 2 and val_fraction > 0 else 0
-    val = np.zeros(n, dtype=bool)
-    val[rng.permutation(n)[:n_val]] = True
-    return pl.DataFrame({"moment": moments, "group_id": np.arange(n, dtype=np.int64),
-                         "fold": [str(f) for f in fold], "split": np.where(val, "val", "train")})
-
-
 def check_groups(samples: pl.DataFrame, tracks: pl.DataFrame, root: Path) -> None:
     """The moment groups must be exactly the groups of identical inputs (`identical_input_groups`)."""
     inputs = samples.select("moment", "group_id", identical_input_groups(samples, tracks).alias("input_group"))
@@ -621,8 +540,8 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
     scenes_table = pl.DataFrame(scene_rows, schema_overrides={"fold": pl.String})
     single = samples.group_by("group_id").len().filter(pl.col("len") == 1).height
     if skipped and not quiet:
-        say(("warning:", "yellow"), f" skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} "
-            "steps around the fork (listed in dataset.json, lineage.skipped)")
+        warn(f"skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} steps around the fork "
+             "(listed in dataset.json, lineage.skipped)")
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
     with DatasetWriter(out, meta, overwrite=overwrite) as writer:
         for _, scene_tracks in tracks.group_by("scene_id", maintain_order=True):
@@ -633,3 +552,7 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
             "val_fraction": val_fraction, "seed": seed, "vehicle_id_offset": VEHICLE_ID_OFFSET,
             "single_future_groups": single, "skipped": skipped})
     return out
+
+
+ADAPTER = Ingest(name="forking-paths", dataset=DATASET, dt=DT, folds=None, raw="the Forking Paths release",
+                 function=ingest_forking_paths)

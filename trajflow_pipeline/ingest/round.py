@@ -1,61 +1,6 @@
-"""`trajflow ingest round`: rounD (levelX format) gap-acceptance scenarios as a unified Parquet dataset, with maps.
-
-Input, per recording XX (25 Hz): ``XX_recordingMeta.csv``, ``XX_tracksMeta.csv``, ``XX_tracks.csv`` and
-``XX_background.png``. A folder (or its ``data/`` sub-folder), a selection of its recordings, or one recording's
-file may be given. Recordings are read, resampled, searched and written one at a time, so memory is bounded by
-one recording (plus the writer's shard buffer), never by the dataset.
-
-Tracks: every road user of every recording, resampled from 25 Hz to dt = 0.2 s by keeping every 5th raw frame
-(frame = raw frame / 5); class -> agent_type (car, van, truck, bus, trailer -> vehicle; motorcycle; bicycle;
-pedestrian; anything else -> unknown; the raw class is kept in ``agent_class``); heading in radians wrapped to
-[-pi, pi); vx / vy from xVelocity / yVelocity; length / width from the tracks file.
-
-Samples follow the gap-acceptance definition of Schumann et al. (2023) for rounD, which TrajFlow (section VI-A)
-evaluates on, applied to the 5 Hz tracks and a :class:`RoundaboutGeometry` (inferred per recording from its
-circulating traffic unless given per location):
-
-* target: a motor vehicle (car, van, truck, bus, motorcycle) that starts more than ``approach_margin`` outside the
-  carriageway (r > R + margin), enters it (r < R; the first such frame is t_A) and never drives over the island;
-* its entry direction phi is the direction of its approach arm (from where it reaches R + margin back to its
-  first position); angles psi of other vehicles are measured from phi in the circulation direction;
-* ego: another motor vehicle, present by t_A, that enters the conflict zone (r <= R, 0 < psi < conflict_angle,
-  i.e. the carriageway just downstream of the target's arm) from inside the carriageway at frame t_C while the
-  target is recorded. t_C <= t_A: the target let the ego pass (a *rejected* gap; every such ego is a situation);
-  the first ego with t_C > t_A is the one the target cut in front of (the *accepted* gap);
-* decision: t_A for an accepted gap, t_C for a rejected one. The gap is open (undecided) while the ego circulates
-  in position (R - ego_band <= r <= R) upstream of the arm (psi < 0) and the target is still outside (r > R);
-  t_S is the first frame of the last undecided run before the decision;
-* prediction time t0 = max(t_S, first frame with 15 past frames of both vehicles) (the framework's ``start``
-  prediction time, relaxed to have a full past); kept when t0 < decision and both vehicles are recorded for 25
-  more frames;
-* critical time t_crit (the framework's ``t_crit``, :func:`critical_frames`): the first frame in [t_S, decision)
-  at which the ego -- the vehicle offering the gap, for whose planning the prediction is made -- can no longer
-  stop before the conflict zone by braking at CRITICAL_DECELERATION (4 m/s^2): its distance to the zone is
-  below its braking distance v^2 / (2 a). A prediction made then comes too late to act on, so a situation with
-  t0 >= t_crit is dropped (the framework's default ``exclude_post_crit``); without such a frame t_crit is
-  undefined and nothing is dropped. The counts per recording are in the lineage (``excluded_after_critical``);
-* both target and ego are predicted: two samples with the same ``t0_frame`` and ``joint_id``; every other road
-  user present at t0 is context (the tracks hold them with their classes);
-* horizon: ``n_future`` = 25 for every sample (the model's trained horizon); ``n_future_max`` is the horizon the
-  decision needs, as in the framework: max(25, min(2 * n_past, t_C - t0) + 5) steps, i.e. until 1 s after the ego
-  would reach the conflict zone, at most 35, and at most what both tracks hold. The tracks hold every row, so a
-  loader can read ``n_future_max`` future positions to test extrapolation.
-
-Extra sample columns: ``role`` (target / ego), ``partner_id`` (the other predicted vehicle), ``gap`` (accepted /
-rejected), ``decision_frame``, ``conflict_frame`` (t_C), ``critical_frame`` (t_crit, null where undefined),
-``entry_arm`` (index into the geometry's entry arms, -1 if none), ``n_future_max`` and ``situation_id``.
-
-Folds: a situation is one target's entering manoeuvre -- every gap it rejected and the one it accepted, each with
-its ego (``situation_id``). Situations are dealt round-robin into folds "0".."4" in a seeded random order and a
-seeded 10 % of them are ``val``, the rest ``train`` (protocol ``folds``), so the two samples of a pair and the
-overlapping samples of one target never straddle folds. (An ego may still appear in another target's situation
-in another fold; linking those too chains busy periods of a recording into a few giant situations and leaves the
-folds unbalanced.)
-
-Maps: each background image is converted to grey-scale and stored once (by content) as ``maps/<hash>.png``;
-``scenes.map_m_per_px`` = orthoPxToMeter * 10 (the levelX tools show rounD backgrounds downscaled by 10) and
-``scenes.map_world_to_px`` = [1/s, 0, 0, 0, -1/s, 0] (image rows grow downwards while y grows upwards; pixel
-coordinates are integers at pixel centres).
+"""`trajflow ingest round`: rounD (levelX) gap-acceptance scenarios as a unified Parquet dataset, with maps: target
+and ego of every accepted or rejected gap, 15 past / 25 (up to 35) future steps at 0.2 s, 5 folds of whole
+situations. The specification (scenario definition, horizons, folds, maps): docs/datasets/round.md.
 """
 
 from __future__ import annotations
@@ -72,11 +17,14 @@ from typing import Any
 import numpy as np
 import polars as pl
 from PIL import Image, UnidentifiedImageError
+from rich.text import Text
 
 from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util import input_files
-from ..util.progress import make_progress, say
+from ..util.progress import make_progress, styled
+from .base import Ingest, collect_warnings, warn
+from .folds import ceiled_share, fold_arrays
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
 from .textfile import MAX_MAGNITUDE, csv_record_line, in_range, range_problem
 from .windows import GROUP_TOLERANCE_M, _window_hashes
@@ -165,12 +113,6 @@ class RecordingResult:
     scene: dict[str, Any]
     samples: pl.DataFrame
     summary: dict[str, Any] = field(default_factory=dict)
-
-
-def _warn(message: str, warnings: list[str]) -> None:
-    """Show a warning on stderr (even under --quiet: it changes what the dataset holds) and keep it."""
-    warnings.append(message)
-    say(("warning:", "bold yellow"), f" {message}")
 
 
 # --------------------------------------------------------------------------------------------- discovering input
@@ -389,8 +331,7 @@ def resample(raw: pl.DataFrame, tracks_meta: pl.DataFrame, meta: RecordingMeta, 
 # ---------------------------------------------------------------------------------------------------------- maps
 
 
-def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks: pl.DataFrame,
-                   warnings: list[str]) -> dict[str, Any]:
+def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks: pl.DataFrame) -> dict[str, Any]:
     """Store the recording's background as a grey-scale PNG under root/maps (once per distinct image) and return
     the scene's map columns. Warns when the tracks do not fall on the image under the levelX convention."""
     path = recording.path("background.png")
@@ -414,9 +355,9 @@ def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks
         inside = tracks.select(((pl.col("x") * affine[0]).is_between(-0.5, width - 0.5)
                                 & (pl.col("y") * affine[4]).is_between(-0.5, height - 0.5)).mean()).item()
         if inside < MIN_INSIDE_IMAGE:
-            _warn(f"{path}: only {inside:.0%} of the positions fall on the image with metres per pixel = "
+            warn(f"{path}: only {inside:.0%} of the positions fall on the image with metres per pixel = "
                   f"orthoPxToMeter * {BACKGROUND_SCALE_DOWN} and pixel = (x, -y) / scale; map crops may be "
-                  "misaligned", warnings)
+                  "misaligned")
     return {"map_path": name, "map_m_per_px": metres, "map_world_to_px": affine}
 
 
@@ -624,11 +565,7 @@ def assign_splits(samples: pl.DataFrame) -> pl.DataFrame:
     first = pl.col("sample_id").min().over("scene_id", target)
     samples = samples.with_columns(situation_id=first.rank("dense").cast(pl.Int64) - 1)
     count = int(samples.get_column("situation_id").max() or 0) + 1
-    rng = np.random.default_rng(SPLIT_SEED)
-    fold_of = np.empty(count, dtype=np.int64)
-    fold_of[rng.permutation(count)] = np.arange(count) % FOLDS
-    is_val = np.zeros(count, dtype=bool)
-    is_val[rng.permutation(count)[:math.ceil(VAL_FRACTION * count)]] = True
+    fold_of, is_val = fold_arrays(count, FOLDS, ceiled_share(count, VAL_FRACTION), SPLIT_SEED)
     situation = samples.get_column("situation_id").to_numpy()
     return samples.with_columns(
         fold=pl.Series(fold_of[situation].astype(str), dtype=pl.String),
@@ -639,8 +576,8 @@ def assign_splits(samples: pl.DataFrame) -> pl.DataFrame:
 # ----------------------------------------------------------------------------------------------------- pipeline
 
 
-def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.DataFrame, recording: Recording,
-              warnings: list[str]) -> RoundaboutGeometry | None:
+def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.DataFrame,
+              recording: Recording) -> RoundaboutGeometry | None:
     """The configured geometry of the recording's location, else one inferred from its traffic (None + warning
     when there is too little circulating traffic to infer it)."""
     given = geometry_for(config, meta.location_id)
@@ -649,11 +586,11 @@ def _geometry(config: GeometryConfig | None, meta: RecordingMeta, tracks: pl.Dat
     try:
         return infer_geometry(motor_tracks(tracks), DT, where=str(recording.path("tracks.csv")))
     except GeometryError as error:
-        _warn(f"{error}; recording {recording.number:02d} contributes no samples", warnings)
+        warn(f"{error}; recording {recording.number:02d} contributes no samples")
         return None
 
 
-def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig | None, warnings: list[str],
+def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig | None,
                      step: Callable[[str], None] = lambda _: None) -> RecordingResult:
     """Read, check, resample and search one recording; store its map under `root`.
 
@@ -666,9 +603,9 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
     tracks = resample(raw, tracks_meta, meta, recording)
     del raw
     step("map")
-    map_columns = background_map(recording, meta, root, tracks, warnings)
+    map_columns = background_map(recording, meta, root, tracks)
     step("scenarios")
-    used = _geometry(geometry, meta, tracks, recording, warnings)
+    used = _geometry(geometry, meta, tracks, recording)
     situations = extract_situations(tracks, used) if used is not None else None
     after_critical = 0
     if situations is not None:
@@ -677,8 +614,8 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
         situations = situations.filter(~pl.col("after_critical"))
     if situations is not None and situations.height == 0:
         dropped = f" ({after_critical} found too late, at or after their critical time)" if after_critical else ""
-        _warn(f"{recording.path('tracks.csv')}: no gap-acceptance situation (a vehicle entering while another "
-              f"circulates towards its arm){dropped}; the recording contributes no samples", warnings)
+        warn(f"{recording.path('tracks.csv')}: no gap-acceptance situation (a vehicle entering while another "
+              f"circulates towards its arm){dropped}; the recording contributes no samples")
     step("groups")
     if situations is not None and situations.height:
         samples = situation_samples(situations, recording.scene_id)
@@ -713,9 +650,8 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
     raw, out = Path(raw), Path(out)
     selected = discover_recordings(raw, recordings)
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
-    warnings: list[str] = []
     scenes, sample_parts, summaries = [], [], []
-    with DatasetWriter(out, meta, overwrite=overwrite, shard_rows=SHARD_ROWS) as writer:
+    with collect_warnings() as warnings, DatasetWriter(out, meta, overwrite=overwrite, shard_rows=SHARD_ROWS) as writer:
         with make_progress(quiet) as progress:
             for recording in selected:
                 name = f"recording {recording.number:02d}"
@@ -724,7 +660,7 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
                 def step(stage: str, task: Any = task, name: str = name) -> None:
                     progress.update(task, advance=1, description=f"{name}: {stage}")
 
-                result = ingest_recording(recording, writer.root, geometry, warnings, step)
+                result = ingest_recording(recording, writer.root, geometry, step)
                 writer.add_tracks(result.tracks)
                 scenes.append(result.scene)
                 summaries.append(result.summary)
@@ -734,7 +670,7 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
             samples = assign_splits(pl.concat(sample_parts))
         else:
             samples = pl.DataFrame(schema=SAMPLE_SCHEMA)
-            _warn(f"{raw}: no gap-acceptance situation in any recording; the dataset has no samples", warnings)
+            warn(f"{raw}: no gap-acceptance situation in any recording; the dataset has no samples")
         scene_table = pl.DataFrame(scenes, schema_overrides=SCENE_SCHEMA)
         writer.finish(scene_table, samples, lineage={
             "raw": str(raw.resolve()), "n_past": N_PAST, "n_future": N_FUTURE, "n_future_max": N_FUTURE_MAX,
@@ -744,3 +680,14 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
             "background_scale_down": BACKGROUND_SCALE_DOWN, "folds": FOLDS, "val_fraction": VAL_FRACTION,
             "split_seed": SPLIT_SEED, "recordings": summaries, "warnings": warnings})
     return out
+
+
+def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
+    """The line after the ingest: recordings, rows, samples (two per target/ego pair), folds and maps."""
+    return styled(("wrote", "green"), f" {out}: {summary['scenes']} recordings, {summary['track_rows']} track rows, "
+                  f"{summary['samples']} samples ({summary['samples'] // 2} target/ego pairs), "
+                  f"{len(summary['folds'])} folds, maps: {summary['has_map']}")
+
+
+ADAPTER = Ingest(name="round", dataset=DATASET, dt=DT, folds=tuple(str(fold) for fold in range(FOLDS)),
+                 raw="the folder of levelX rounD recordings", function=ingest_round, summary=wrote_line)

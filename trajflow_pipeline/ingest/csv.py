@@ -1,24 +1,6 @@
-"""`trajflow ingest csv`: bring-your-own trajectories from a CSV or Parquet file.
-
-The file has one row per (scene, agent, time) with x / y in metres; column names are mapped by options.
-Samples follow the strict ETH/UCY-style protocol (every agent at every frame with n_past + n_future consecutive
-positions); samples with identical inputs share a group_id (even across scenes), so multi-future data brought
-this way gets JSD evaluation too. Every problem found in the file names it and its line (CSV, as an editor counts
-lines) or its row (Parquet).
-
-Protocols (``--protocol``; the default is ``fixed`` with ``--split-col``, else ``folds``), made of units chosen by
-``--split-by``: ``time`` cuts each scene's timeline (windows that cross a cut are dropped from the parts it
-separates), ``scene`` deals whole scenes, ``group`` whole groups of identical inputs (seeded); ``auto`` takes
-``time`` unless its cuts drop more than half of the windows (short scenes), then ``scene``.
-
-* ``folds``: `--folds` time blocks per scene, or units dealt into folds; a `val_fraction` of each block's end (or
-  of the units) validates when its fold trains.
-* ``fixed``: `--split-col` names a column saying train / val / test (read at each sample's t0 row), or
-  `--test-fraction` holds out that part of the timelines' ends or of the units (and `val_fraction` validates).
-* ``train-is-test``: every sample tests (multi-future benchmarks); a `val_fraction` of the units (or of each
-  timeline's end) validates, the rest trains.
-
-A protocol that leaves a fold (or the dataset) without test or training samples is refused at ingest.
+"""`trajflow ingest csv`: bring-your-own trajectories from a CSV or Parquet file (one row per scene, agent and
+time; columns mapped by options), with folds, fixed splits or train-is-test made of time cuts, scenes or groups.
+The options, protocols and checks: docs/datasets/csv.md.
 """
 
 from __future__ import annotations
@@ -34,7 +16,8 @@ from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FIXED, PROTOCOL_FOLDS, PROTOCOL_TRAIN_IS_TEST, PROTOCOLS, DatasetMeta, DatasetWriter
 from ..schemas.tables import SPLITS
 from ..util import input_files
-from .ingest_forking_paths import assign_folds
+from .base import Ingest
+from .folds import assign_folds
 from .textfile import csv_record_line, csv_records, in_range, range_problem
 from .windows import complete_windows, identical_input_groups
 
@@ -482,3 +465,6 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
             "folds": folds if options.resolved_protocol == PROTOCOL_FOLDS else None,
             "val_fraction": val_fraction, "test_fraction": test_fraction, "seed": seed})
     return out
+
+
+ADAPTER = Ingest(name="csv", dataset=None, dt=None, folds=None, raw="a CSV or Parquet file", function=ingest_csv)

@@ -1,42 +1,6 @@
-"""`trajflow ingest nuscenes`: the nuScenes release through nuscenes-devkit as a unified Parquet dataset.
-
-The official release (``DATAROOT/<version>/*.json`` plus ``DATAROOT/maps/``) is read with nuscenes-devkit
-(``NuScenes``, ``PredictHelper``, ``get_prediction_challenge_split``, ``NuScenesMap``), never with a parser of our
-own, and written scene by scene (memory beyond the devkit's own tables stays bounded by one scene's rows plus a
-slim copy of the positions used for the identical-input groups).
-
-Conventions (also recorded in ``dataset.json`` → ``lineage``):
-
-* **Frames and time.** One frame per keyframe (``sample``), dt = 0.5 s, frame 0 = the scene's first keyframe.
-  ``t`` is the real time in seconds since that keyframe (keyframes are only nominally 0.5 s apart);
-  ``timestamp_us`` keeps the release's microsecond timestamp.
-* **Positions** are the global frame of the release in metres: annotation box centres, and for the ego vehicle
-  the ``ego_pose`` of the keyframe's ``LIDAR_TOP`` sample_data (the pose origin, the rear axle). ``heading`` is
-  the yaw of the rotation quaternion (as the devkit's ``quaternion_yaw``), ``length`` / ``width`` come from the
-  box ``size`` = [width, length, height]; ``z`` is kept as an extra column.
-* **Agents.** ``agent_id`` = 1 + the instance's index in ``instance.json`` (unique in the release and stable for
-  it); the ego vehicle is :data:`EGO_AGENT_ID` = 0 in every scene with ``instance_token`` "ego" and the Renault
-  Zoe's size. Tracks keep ``instance_token`` and ``category`` (the nuScenes category name).
-* **Agent types.** ``vehicle.bicycle`` → bicycle, ``vehicle.motorcycle`` → motorcycle, other ``vehicle.*`` (cars,
-  buses, trucks, trailers, construction and emergency vehicles) → vehicle, ``human.pedestrian.*`` → pedestrian,
-  ``animal`` (and any category this list does not know) → unknown. ``movable_object.*`` and ``static_object.*``
-  (barriers, cones, debris, bicycle racks) are not agents and are skipped.
-* **Samples** are the prediction-challenge entries of ``maps/prediction/prediction_scenes.json`` selected with
-  ``get_prediction_challenge_split``, n_past = 4 (t0 included), n_future = 12. Protocol ``fixed``; the challenge
-  splits map onto the dataset's splits as :data:`VERSION_SPLITS` says (trainval: train → train, train_val → val,
-  val → test; mini: mini_train → train, mini_val → test, so the mini has no val samples). ``challenge_split``,
-  ``instance_token`` and ``sample_token`` are kept per sample. An entry whose devkit future is shorter than 12
-  keyframes cannot be scored and is dropped (counted in the lineage, with a warning).
-* **Short pasts.** The devkit returns fewer than 3 past positions for agents that appeared less than 1.5 s before
-  t0; such samples keep what the devkit returns: ``past_available`` (1..4, t0 included) counts the real positions
-  and the missing earlier frames are padded in ``tracks`` by repeating the agent's next real position (so a late
-  start repeats the first position), rows marked ``padded`` = true (frames may be negative at a scene's start;
-  their ``t`` is frame × dt and their ``timestamp_us`` null). Filter ``padded`` to see only annotated positions.
-* **--all-agents** (the way to get samples without prediction_scenes.json): every annotated agent (not the ego)
-  at every keyframe with 4 past and 12 future keyframes becomes a sample; splits come from the devkit's official
-  scene lists with the same mapping (scenes in no list get no split).
-* **Maps**: see :mod:`.nuscenes_maps` (0.1 m/px grey-scale PNG per scene under ``maps/``, covering the scene's
-  positions plus 80 m); without the map expansion the dataset has no maps and a warning says so.
+"""`trajflow ingest nuscenes`: the nuScenes release, read only through nuscenes-devkit, as a unified Parquet dataset:
+prediction-challenge samples (or every agent), 4 past + 12 future keyframes at 0.5 s, the ego vehicle, one map
+per scene. The conventions (frames, agents, types, splits, short pasts): docs/datasets/nuscenes.md.
 """
 
 from __future__ import annotations
@@ -53,12 +17,13 @@ from typing import Any
 
 import numpy as np
 import polars as pl
+from rich.text import Text
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..schemas import PROTOCOL_FIXED, DatasetMeta, DatasetWriter
-from ..util.progress import make_progress
+from ..util.progress import make_progress, styled
 from . import nuscenes_maps
-from .nuscenes_maps import NuScenesWarning
+from .base import Ingest, warn
 from .windows import complete_windows, identical_input_groups
 
 DATASET = "nuscenes"
@@ -99,7 +64,7 @@ SAMPLE_SCHEMA = {"scene_id": pl.String, "agent_id": pl.Int64, "t0_frame": pl.Int
 INSTALL_HINT = ("install the nuScenes extra: pip install -e '.[nuscenes]' "
                 "(or: pip install nuscenes-devkit 'numpy<2' 'opencv-python-headless<4.12')")
 
-__all__ = ["DATASET", "DT", "EGO_AGENT_ID", "N_FUTURE", "N_PAST", "NuScenesWarning", "VERSION_SPLITS",
+__all__ = ["DATASET", "DT", "EGO_AGENT_ID", "N_FUTURE", "N_PAST", "VERSION_SPLITS",
            "agent_type_of", "ingest_nuscenes", "quaternion_yaw"]
 
 
@@ -534,9 +499,8 @@ def ingest_nuscenes(dataroot: str | Path, out: str | Path, *, version: str = "v1
                                                       writer.root, progress)
             if dropped:
                 reasons = ", ".join(f"{count} {why}" for why, count in dropped.items())
-                warnings.warn(f"{prediction_scenes_path(dataroot)}: dropped {sum(dropped.values())} prediction-"
-                              f"challenge entr{'y' if sum(dropped.values()) == 1 else 'ies'} ({reasons})",
-                              NuScenesWarning, stacklevel=2)
+                warn(f"{prediction_scenes_path(dataroot)}: dropped {sum(dropped.values())} prediction-challenge "
+                     f"entr{'y' if sum(dropped.values()) == 1 else 'ies'} ({reasons})")
             samples = _number_samples(sample_parts, pl.concat(slim_parts), mapping)
             if samples.height == 0:
                 source = "every agent's windows" if all_agents else str(prediction_scenes_path(dataroot))
@@ -581,3 +545,15 @@ def _lineage(dataroot: Path, version: str, devkit: Devkit, all_agents: bool, map
         "maps": ({"m_per_px": nuscenes_maps.M_PER_PX, "margin_m": nuscenes_maps.MARGIN_M,
                   "grey_levels": nuscenes_maps.GREY_LEVELS} if has_maps else None),
     }
+
+
+def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
+    """The line after the ingest: scenes, rows, samples per split, groups and whether there are maps."""
+    splits = ", ".join(f"{row['split']} {row['samples']}" for row in summary["samples_by_fold_and_split"])
+    maps = "with maps" if summary["has_map"] else "no maps"
+    return styled(("wrote", "green"), f" {out}: {summary['scenes']} scenes, {summary['track_rows']} track rows, "
+                  f"{summary['samples']} samples ({splits}), {summary['groups']} groups, {maps}")
+
+
+ADAPTER = Ingest(name="nuscenes", dataset=DATASET, dt=DT, folds=None, raw="the nuScenes root (DATAROOT)",
+                 function=ingest_nuscenes, summary=wrote_line)

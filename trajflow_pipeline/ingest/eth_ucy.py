@@ -20,6 +20,7 @@ from ..errors import DataError, TrajflowError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
 from ..util import input_files
 from ..util.progress import make_progress
+from .base import Ingest
 from .textfile import read_numeric_tables
 from .windows import complete_windows, identical_input_groups
 
@@ -237,3 +238,7 @@ def _relative(path: Path, root: Path) -> str:
         return str(path.relative_to(root))
     except ValueError:
         return str(path)
+
+
+ADAPTER = Ingest(name="eth-ucy", dataset=DATASET, dt=DT, folds=FOLDS, raw="the raw ETH/UCY folder",
+                 function=ingest_eth_ucy)

@@ -1,29 +1,6 @@
-"""Rasterised nuScenes maps: each scene's surroundings from the map expansion as one grey-scale PNG.
-
-The nuScenes map expansion (``maps/expansion/<location>.json``, v1.3) holds vector layers; the devkit's
-``NuScenesMap.get_map_mask`` rasterises them. For every scene we rasterise the axis-aligned box around all of its
-track positions plus :data:`MARGIN_M` metres, north up, at :data:`M_PER_PX` metres per pixel, and paint three
-layers into one 8-bit grey image (later layers overwrite earlier ones, so a crossing on the road reads as a
-crossing):
-
-=============== ===========
-layer           grey level
-=============== ===========
-(nothing)       0
-walkway         85
-drivable_area   170
-ped_crossing    255
-=============== ===========
-
-The scenes table records the file (``maps/<scene_id>.png``), ``map_m_per_px`` and ``map_world_to_px``, the affine
-``[a, b, c, d, e, f]`` with ``px = a x + b y + c`` (column) and ``py = d x + e y + f`` (row) for global x / y in
-metres; integer pixel coordinates are pixel centres. Since rows grow southwards, ``e`` is negative. A scene whose
-box would exceed :data:`MAX_SIDE_PX` pixels on a side is rasterised more coarsely (its own ``map_m_per_px`` says
-so) to keep memory bounded; real nuScenes scenes (20 s) fit at 0.1 m/px.
-
-One location's expansion is held in memory at a time. ``get_map_mask`` rebuilds every polygon of a layer on each
-call; a :class:`LayerIndex` of record bounding boxes (computed once per location) lets each scene hand it only
-the records that reach its box, which gives the identical raster much faster on city-sized maps.
+"""Rasterised nuScenes maps: each scene's surroundings from the map expansion as one grey-scale PNG (walkway,
+drivable area, crossings), one location's expansion in memory at a time; grey levels and the affine in
+docs/datasets/nuscenes.md.
 """
 
 from __future__ import annotations
@@ -31,7 +8,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +18,7 @@ from PIL import Image
 from rich.progress import Progress
 
 from ..errors import DataError
+from .base import warn
 
 #: metres per pixel of the rasters (the resolution of the official nuScenes semantic maps)
 M_PER_PX = 0.1
@@ -218,10 +195,6 @@ def write_png(grey: np.ndarray, path: Path) -> None:
     Image.fromarray(grey, mode="L").save(path, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
 
 
-class NuScenesWarning(UserWarning):
-    """Something the nuScenes ingest could not do but worked around (no map expansion, dropped entries)."""
-
-
 @dataclass(frozen=True)
 class MapRef:
     """What the scenes table records about one scene's raster."""
@@ -237,7 +210,7 @@ def rasterise_scene_maps(map_class: Any, dataroot: Path, locations: dict[str, st
     """Rasterise every scene whose location has a map expansion into ``out_root/maps/<scene_id>.png``.
 
     `locations` maps scene ids to map locations and `bounds` to the box of their track positions. One location's
-    expansion is held in memory at a time. Locations without an expansion produce a :class:`NuScenesWarning`
+    expansion is held in memory at a time. Locations without an expansion produce a warning (:func:`.base.warn`)
     and no map (the whole dataset has none when the expansion is absent).
     """
     by_location: dict[str, list[str]] = {}
@@ -246,14 +219,13 @@ def rasterise_scene_maps(map_class: Any, dataroot: Path, locations: dict[str, st
     present = [loc for loc in sorted(by_location) if expansion_path(dataroot, loc).is_file()]
     expansion_dir = dataroot / "maps" / "expansion"
     if not present:
-        warnings.warn(f"{expansion_dir}: map expansion not found; the dataset gets no maps ({EXPANSION_HINT} to "
-                      "rasterise drivable area, walkways and crossings)", NuScenesWarning, stacklevel=3)
+        warn(f"{expansion_dir}: map expansion not found; the dataset gets no maps ({EXPANSION_HINT} to rasterise "
+             "drivable area, walkways and crossings)")
         return {}
     absent = [loc for loc in sorted(by_location) if loc not in present]
     if absent:
         count = sum(len(by_location[loc]) for loc in absent)
-        warnings.warn(f"{expansion_dir}: no map expansion for {', '.join(absent)}; its {count} scene(s) get no map",
-                      NuScenesWarning, stacklevel=3)
+        warn(f"{expansion_dir}: no map expansion for {', '.join(absent)}; its {count} scene(s) get no map")
     task = progress.add_task("rasterising maps", total=sum(len(by_location[loc]) for loc in present)) \
         if progress is not None else None
     refs: dict[str, MapRef] = {}

@@ -17,6 +17,7 @@ import polars as pl
 from ..errors import UsageError
 from ..schemas import PROTOCOL_TRAIN_IS_TEST, DatasetMeta, DatasetWriter
 from ..util.bounds import check_seed
+from .base import Ingest
 from .windows import identical_input_groups
 
 DATASET = "synthetic_bimodal"
@@ -99,3 +100,7 @@ def ingest_synthetic_bimodal(out: str | Path, *, samples: int = 3000, seed: int 
         writer.finish(scenes, table, lineage={"generator": "synthetic-bimodal", "seed": seed, "samples": samples,
                                               "scale_std": SCALE_STD, "val_fraction": VAL_FRACTION})
     return out
+
+
+ADAPTER = Ingest(name="synthetic-bimodal", dataset=DATASET, dt=DT, folds=None, raw=None,
+                 function=ingest_synthetic_bimodal)
