@@ -6,7 +6,12 @@ Shared by the ingest stages whose protocol is "every agent at every frame with a
 
 from __future__ import annotations
 
+import math
+
 import polars as pl
+
+from ..errors import DataError
+from .textfile import MAX_MAGNITUDE, in_range, range_problem
 
 #: Past positions closer than this (metres, in the data's own coordinates) count as identical inputs.
 GROUP_TOLERANCE_M = 1e-3
@@ -52,6 +57,19 @@ def _window_hashes(tracks: pl.DataFrame, n_past: int, tolerance: float) -> pl.Da
                          pl.struct("agent_type", *fields).hash(seed=0).alias("window_hash"))
 
 
+def _check_on_grid(tracks: pl.DataFrame) -> None:
+    """Every position is one the tolerance grid holds (finite, within textfile.MAX_MAGNITUDE): an ingest whose reader
+    let a 1e300 through gets a DataError naming the row's scene, agent and frame here, not a bare integer-cast error
+    from polars."""
+    bad = tracks.filter(~(in_range(pl.col("x")) & in_range(pl.col("y"))))
+    if bad.height:
+        row = bad.row(0, named=True)
+        value = row["x"] if not (math.isfinite(row["x"]) and abs(row["x"]) <= MAX_MAGNITUDE) else row["y"]
+        why = range_problem(value)
+        raise DataError(f"position ({row['x']}, {row['y']}) of agent {row['agent_id']} in scene '{row['scene_id']}' "
+                        f"at frame {row['frame']} is {why}: check the raw coordinates and their units")
+
+
 def identical_input_groups(samples: pl.DataFrame, tracks: pl.DataFrame,
                            tolerance: float = GROUP_TOLERANCE_M) -> pl.Series:
     """A group_id per sample: samples with identical inputs (even across scenes) share it.
@@ -63,6 +81,7 @@ def identical_input_groups(samples: pl.DataFrame, tracks: pl.DataFrame,
     windows and contexts hashed. Each agent window is hashed once, each (scene, frame) context once, so the cost
     is linear in the tracks and samples. Ids are numbered in order of each group's first sample.
     """
+    _check_on_grid(tracks)
     base = samples.select("scene_id", "agent_id", "t0_frame", "n_past").with_row_index("__order")
     now = _window_hashes(tracks, 1, tolerance)
     keyed = (base.join(now, left_on=["scene_id", "agent_id", "t0_frame"], right_on=["scene_id", "agent_id", "frame"],
