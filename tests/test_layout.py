@@ -34,3 +34,12 @@ def test_only_rundir_names_the_run_directory_files() -> None:
              for line, text in string_constants(path) if any(name in text for name in RUN_DIR_NAMES)]
     assert not found, "run-directory file names outside rundir.py:\n" + "\n".join(found)
     assert any("run.json" in text for _, text in string_constants(owner))
+
+
+def test_the_model_names_the_config_accepts_are_the_model_families() -> None:
+    """config.MODEL_NAMES (what --model and config files accept; the config module cannot import the models) and
+    models.MODEL_CLASSES (what builds them) list the same families in the same order."""
+    from trajflow_pipeline.model.config import MODEL_NAMES
+    from trajflow_pipeline.model.models import MODEL_CLASSES
+
+    assert tuple(MODEL_CLASSES) == MODEL_NAMES

@@ -70,6 +70,7 @@ from ..metrics.inputs import group_agents, group_minimum
 from ..metrics.rome import KDE_CHOICES, KDE_EXACT
 from ..model.checkpoint import model_digest
 from ..model.models import CV_EXTENSION, TrajectoryModel
+from ..model.runtime import resolve_device
 from ..rundir import (EVAL_DIR, EVAL_FILE, EVAL_LOCK, GROUND_TRUTH_FILE, METRICS_FILE, PREDICTIONS_FILE, ROME_CACHE_DIR,
                       RunInfo, open_run)
 from ..schemas import data_mismatch, open_dataset
@@ -421,7 +422,7 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
         raise UsageError(f"{ds.path}: the run was trained on fold {run.fold or '(none)'} of '{run.dataset}', "
                          f"which dataset '{ds.meta.dataset}' does not have") from None
     problems = build_problems(ds, selection, extended=options.extended_horizon)
-    torch_device = _device(device)
+    torch_device = resolve_device(device)
     model = run.load_model(torch_device)
     digest = _check_weights_digest(run, model, force)
     horizon = plan_horizon(options, problems, model)
@@ -478,15 +479,3 @@ def aggregate_metrics(eval_dir: str | Path) -> dict[str, float]:
     """metric -> value of the aggregate rows of an eval directory's metrics table."""
     table = input_files.read_parquet(Path(eval_dir) / METRICS_FILE).filter(pl.col("aggregate"))
     return dict(table.select("metric", "value").iter_rows())
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as error:
-        raise UsageError(f"--device: {error}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UsageError("--device cuda requested but no CUDA device is available")
-    return device
