@@ -11,8 +11,9 @@ import polars as pl
 import pytest
 
 from trajflow_pipeline.metrics import METRIC_NAMES, compute_metrics
-from trajflow_pipeline.stages import evaluate as evaluate_stage
-from trajflow_pipeline.stages.evaluate import EXTENDED_SUFFIX, LONG_SUFFIX, _extended_metrics, _recompute_set
+from trajflow_pipeline.metrics import extended
+from trajflow_pipeline.metrics.extended import EXTENDED_SUFFIX, LONG_SUFFIX, _recompute_set
+from trajflow_pipeline.metrics.extended import extended_metrics as _extended_metrics
 
 N_FUTURE, LONGEST, DRAWS = 4, 6, 20
 DETERMINISTIC = ("min_ade", "min_fde", "min_ade_joint", "min_fde_joint")
@@ -61,14 +62,14 @@ def _standard(problems: SimpleNamespace, pred: np.ndarray, common: dict[str, Any
 
 
 def _counting(monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """Replace evaluate's compute_metrics by a wrapper recording how many problems each call gets."""
+    """Replace the extended metrics' compute_metrics by a wrapper recording how many problems each call gets."""
     calls: list[int] = []
 
     def counted(pred: np.ndarray, *args: Any, **kwargs: Any) -> pl.DataFrame:
         calls.append(pred.shape[0])
         return compute_metrics(pred, *args, **kwargs)
 
-    monkeypatch.setattr(evaluate_stage, "compute_metrics", counted)
+    monkeypatch.setattr(extended, "compute_metrics", counted)
     return calls
 
 
