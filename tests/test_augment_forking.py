@@ -12,7 +12,7 @@ import typer
 from test_forking_fixture import Moment, write_release
 from typer.testing import CliRunner
 
-from trajflow_pipeline.cli.forking_cmd import augment_forking_command, augment_scale_rotate_command
+from trajflow_pipeline.cli.augment_cmd import augment_forking_command, augment_scale_rotate_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
 from trajflow_pipeline.stages.augment import augment_forking, draw_forking

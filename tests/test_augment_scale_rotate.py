@@ -11,7 +11,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from trajflow_pipeline.cli.forking_cmd import augment_scale_rotate_command
+from trajflow_pipeline.cli.augment_cmd import augment_scale_rotate_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import PROTOCOL_FIXED, DatasetMeta, DatasetWriter, open_dataset
 from trajflow_pipeline.stages.augment import augment_scale_rotate, draw_scale_rotate

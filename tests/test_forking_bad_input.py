@@ -13,7 +13,7 @@ import typer
 from test_forking_fixture import Moment, default_moments, write_release
 from typer.testing import CliRunner
 
-from trajflow_pipeline.cli.forking_cmd import ingest_forking_paths_command
+from trajflow_pipeline.cli.ingest_cmd import ingest_forking_paths_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
 from trajflow_pipeline.ingest.forking_paths import ingest_forking_paths

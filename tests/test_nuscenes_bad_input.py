@@ -13,7 +13,7 @@ pytest.importorskip("nuscenes", reason="nuscenes-devkit is not installed (pip in
 
 from nuscenes_fixture import Release, write_release  # noqa: E402
 
-from trajflow_pipeline.cli.nuscenes_cmd import ingest_nuscenes_command  # noqa: E402
+from trajflow_pipeline.cli.ingest_cmd import ingest_nuscenes_command  # noqa: E402
 
 runner = CliRunner()
 app = typer.Typer()

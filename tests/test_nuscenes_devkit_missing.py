@@ -13,7 +13,7 @@ import typer
 from nuscenes_fixture import write_release
 from typer.testing import CliRunner
 
-from trajflow_pipeline.cli.nuscenes_cmd import ingest_nuscenes_command
+from trajflow_pipeline.cli.ingest_cmd import ingest_nuscenes_command
 from trajflow_pipeline.errors import TrajflowError
 from trajflow_pipeline.ingest.nuscenes import ingest_nuscenes
 

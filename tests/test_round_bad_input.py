@@ -12,7 +12,7 @@ import typer
 from test_round_synth import EGO_ACCEPT, EGO_REJECT, gap_scenario, write_gap_recordings, write_recording
 from typer.testing import CliRunner
 
-from trajflow_pipeline.cli.round_cmd import ingest_round_command
+from trajflow_pipeline.cli.ingest_cmd import ingest_round_command
 from trajflow_pipeline.errors import DataError, UsageError
 from trajflow_pipeline.schemas import open_dataset
 from trajflow_pipeline.ingest.round import ingest_round

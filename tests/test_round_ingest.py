@@ -17,7 +17,7 @@ from test_round_synth import (ARMS_DEG, CENTRE, EGO_ACCEPT, EGO_REJECT, LANE_RAD
                               TARGET_ACCEPT, TARGET_REJECT, gap_scenario, write_gap_recordings, write_recording)
 from typer.testing import CliRunner
 
-from trajflow_pipeline.cli.round_cmd import ingest_round_command
+from trajflow_pipeline.cli.ingest_cmd import ingest_round_command
 from trajflow_pipeline.data.loader import build_problems, list_folds, load_problems
 from trajflow_pipeline.data.maps import crops_for_problems, past_headings
 from trajflow_pipeline.schemas import open_dataset

@@ -73,11 +73,11 @@ def test_console_script_lowers_threads_for_model_commands_only(restore_threads: 
                                                               monkeypatch: pytest.MonkeyPatch,
                                                               tmp_path: Path) -> None:
     calls: list[str] = []
-    monkeypatch.setattr(cli, "AUTO_THREADS", {"enabled": True})
     monkeypatch.setattr("trajflow_pipeline.model.runtime.fit_threads_to_idle_cpus",
                         lambda: calls.append("fit") or (2, 1))
     runner = CliRunner()
-    result = runner.invoke(cli.app, ["eval", str(tmp_path / "no-run")])
+    console_script = {"auto_threads": True}  # what main() gives the app
+    result = runner.invoke(cli.app, ["eval", str(tmp_path / "no-run")], obj=console_script)
     assert calls == ["fit"] and "1 torch thread(s) instead of 2" in result.output
-    runner.invoke(cli.app, ["inspect", str(tmp_path / "no-data")])
+    runner.invoke(cli.app, ["inspect", str(tmp_path / "no-data")], obj=console_script)
     assert calls == ["fit"]

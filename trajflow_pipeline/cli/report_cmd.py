@@ -15,6 +15,7 @@ from .common import Quiet, user_errors
 
 
 def report_command(
+    ctx: typer.Context,
     runs: Annotated[list[Path], typer.Argument(
         metavar="RUN_OR_EXPERIMENT",
         help="Evaluated run directories (with eval/ from `trajflow eval`) and/or experiment directories "
@@ -30,7 +31,7 @@ def report_command(
     folds and seeds per dataset and model, next to the paper's TrajFlow numbers."""
     from ..stages.report import report
 
-    with user_errors():
+    with user_errors(ctx):
         path = report(runs, out, quiet=quiet, figures=not no_figures, max_examples=examples)
     if not quiet:
         say(("wrote", "green"), f" report {path / 'report.html'} (Markdown: {path / 'report.md'})")

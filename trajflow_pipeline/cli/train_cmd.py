@@ -15,6 +15,7 @@ from .common import Quiet, user_errors
 
 
 def train_command(
+    ctx: typer.Context,
     data: Annotated[Path, typer.Argument(metavar="DATA", help="Dataset directory written by `trajflow ingest`.")],
     out: Annotated[Path, typer.Option("--out", "-o", metavar="RUN",
                                       help="Run directory: config, checkpoints, training log, final model.")],
@@ -46,6 +47,6 @@ def train_command(
     """Train a model: autoencoder pre-training, then the conditional flow (early stopping on the val split)."""
     from ..stages.train import train
 
-    with user_errors():
+    with user_errors(ctx):
         train(data, out, fold=fold, model=model, config_path=config, overrides=tuple(set_ or ()), seed=seed,
               device=device, resume=resume, quiet=quiet, autoencoder_from=autoencoder_from)

@@ -78,6 +78,8 @@ from .train import BUDGET_KEYS, budget_raise, budget_size, first_difference, rai
 
 #: the registered ingests (ingest/registry.py) an experiment config may name: their options are plain TOML values
 INGESTS = ("synthetic-bimodal", "eth-ucy")
+#: the experiment's index: the runs planned and finished, the data and the config
+INDEX_FILE = "experiment.json"
 _TOP_KEYS = {"name", "description", "data", "protocol", "train", "models", "eval"}
 
 
@@ -238,6 +240,12 @@ def _folds(config: ExperimentConfig, data: Path) -> list[str | None]:
 def run_name(model: str, fold: str | None, seed: int) -> str:
     """Directory name of one run of an experiment."""
     return f"{model}-{fold or 'all'}-s{seed}"
+
+
+def experiment_complete(out: str | Path) -> bool:
+    """Whether every planned run of the experiment in `out` is finished (its index, experiment.json, says so)."""
+    index = json.loads(input_files.read_text(Path(out) / INDEX_FILE))
+    return isinstance(index, dict) and index.get("runs") == index.get("planned")
 
 
 def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False,
@@ -493,7 +501,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
                 metrics.write_parquet(tmp)
         plan_rows = [{"run": r, "model": model, "fold": fold, "seed": seed}
                      for r, (model, fold, seed) in zip(runs, plan)]
-        atomic_write_text(out / "experiment.json", json.dumps(
+        atomic_write_text(out / INDEX_FILE, json.dumps(
             {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs, "plan": plan_rows,
              "config": config.source}, indent=2, default=str) + "\n")
 

@@ -1,0 +1,51 @@
+"""`trajflow experiment CONFIG -o EXP` and `trajflow demo`: parse the options and run the experiment stage."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ..util.progress import say, stdout
+from .common import Quiet, user_errors
+
+
+def experiment_command(
+    ctx: typer.Context,
+    config: Annotated[Path, typer.Argument(help="Experiment config (TOML): data, models, folds, seeds, budgets.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Experiment directory (re-running resumes it).")],
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help=(
+        "Runs trained at once, in worker processes that share out the CPU threads. The same command may also be "
+        "started again elsewhere: each run is claimed by one process."))] = 1,
+    only: Annotated[Optional[list[str]], typer.Option(
+        "--only", metavar="PATTERN", help=(
+            "Work only on the runs whose names (MODEL-FOLD-sSEED) match; shell patterns, repeatable, e.g. "
+            "--only flomo-zara2-s0 or --only 'trajflow-*'. To have one run done now beside a process that works "
+            "through the plan, or to split an experiment between machines."))] = None,
+    quiet: Quiet = False,
+) -> None:
+    """Train and evaluate every model x fold x seed of a protocol; resumable, metrics collected in OUT."""
+    from ..stages.experiment import experiment_complete, run_experiment
+
+    with user_errors(ctx):
+        result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs, only=only or ())
+        done = experiment_complete(result)
+    if not quiet and done:
+        say(f"experiment done: {result} (make a report with `trajflow report {result} -o REPORT`)", out=stdout)
+
+
+def demo_command(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Where data, runs and the report go.")] = Path(
+        "trajflow-demo"),
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    quiet: Quiet = False,
+) -> None:
+    """The whole pipeline on built-in data: synthetic bimodal -> TrajFlow + baselines -> metrics -> report."""
+    from ..stages.demo import demo
+
+    with user_errors(ctx):
+        report_dir = demo(out, device=device, quiet=quiet)
+    say(f"report: {report_dir / 'report.html'} (and report.md)", out=stdout)
