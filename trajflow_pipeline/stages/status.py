@@ -45,7 +45,7 @@ _RECENT_EPOCHS = 5
 
 @dataclass(frozen=True)
 class StageProgress:
-    """The stage a run is training (or trained last) and how far along it is, judged as train.py's early stopping
+    """The stage a run is training (or trained last) and how far along it is, judged as training's early stopping
     judges it: after `min_epochs`, `patience` epochs without a lower validation loss than the best end the stage."""
 
     stage: str
