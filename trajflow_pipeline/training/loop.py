@@ -20,6 +20,7 @@ from torch.nn.parallel import DistributedDataParallel
 from ..errors import DataError, UsageError
 from ..model.batch import SceneBatch
 from ..model.checkpoint import save_model, save_training_state
+from ..model.config import StageSchedule
 from ..model.models import build_model
 from ..rundir import BEST_FILE, CONFIG_FILE, FINAL_DIR, LOWEST_VAL_LOSS_FILE, STAGE_END_FILE, STATE_FILE, is_trained
 from ..util.atomic import atomic_write_text
@@ -41,12 +42,7 @@ class _GradientStage:
 
     index: int
     name: str
-    lr: float
-    weight_decay: float
-    batch_size: int
-    max_epochs: int
-    min_epochs: int
-    patience: int
+    schedule: StageSchedule
     params: list[nn.Parameter]
     optimizer: torch.optim.Optimizer
     scheduler: torch.optim.lr_scheduler.ExponentialLR | None
@@ -62,7 +58,8 @@ class _GradientStage:
 
     def done(self, progress: StageProgress) -> bool:
         """Whether the stage ends at `progress`: its epoch limit reached, or early stopping."""
-        return progress.epoch >= self.max_epochs or should_stop(progress, self.min_epochs, self.patience)
+        schedule = self.schedule
+        return progress.epoch >= schedule.max_epochs or should_stop(progress, schedule.min_epochs, schedule.patience)
 
 
 @dataclass
@@ -157,7 +154,7 @@ class Session(RunRecords):
         """Train gradient stage `stage` on from `progress`, one epoch at a time, until its epoch limit or early
         stopping ends it; every epoch is logged and checkpointed. The stage keeps its best weights."""
         fit = self._prepare(index, stage, progress, len(train_batch), len(val_batch))
-        epoch_task = bars.add_task(f"{stage}", total=fit.max_epochs, completed=progress.epoch, status="")
+        epoch_task = bars.add_task(f"{stage}", total=fit.schedule.max_epochs, completed=progress.epoch, status="")
         batch_task = bars.add_task("  batches", total=fit.n_batches, status="")
         stop = fit.done(progress)
         while not stop:
@@ -194,12 +191,7 @@ class Session(RunRecords):
         """The stage's settings, its parameters (the only ones left trainable), their optimizer and learning-rate
         schedule (restored from `progress`) and the objective, DDP-wrapped under torchrun."""
         cfg = self.config.train
-        ae = stage == "autoencoder"
-        lr, weight_decay = (cfg.ae_lr, cfg.ae_weight_decay) if ae else (cfg.flow_lr, cfg.flow_weight_decay)
-        batch_size = cfg.ae_batch_size if ae else cfg.flow_batch_size
-        max_epochs, min_epochs = (cfg.ae_max_epochs, cfg.ae_min_epochs) if ae else (cfg.flow_max_epochs,
-                                                                                       cfg.flow_min_epochs)
-        patience = cfg.ae_patience if ae else cfg.flow_patience
+        schedule = cfg.schedule(stage)
         select_subset = None
         if stage == "flow" and cfg.flow_select == "val_nll":  # a fixed, seeded subset of the validation problems
             select_subset = torch.randperm(n_val, generator=torch.Generator().manual_seed(cfg.seed))
@@ -208,8 +200,9 @@ class Session(RunRecords):
         trainable = {id(p) for p in params}
         for p in self.model.parameters():
             p.requires_grad_(id(p) in trainable)
-        optimizer = adamw(params, lr, weight_decay)
-        scheduler = None if ae else torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=cfg.flow_lr_decay)
+        optimizer = adamw(params, schedule.lr, schedule.weight_decay)
+        scheduler = (None if schedule.lr_decay is None
+                     else torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=schedule.lr_decay))
         if progress.optimizer is not None:
             optimizer.load_state_dict(progress.optimizer)
         if scheduler is not None and progress.scheduler:
@@ -220,9 +213,8 @@ class Session(RunRecords):
             objective = DistributedDataParallel(objective, device_ids=[self.device] if self.device.type == "cuda"
                                                 else None, broadcast_buffers=False)
         per_rank = math.ceil(n_train / self.dist.world)
-        return _GradientStage(index, stage, lr, weight_decay, batch_size, max_epochs, min_epochs, patience, params,
-                              optimizer, scheduler, objective, select_subset, per_rank,
-                              n_batches=math.ceil(per_rank / batch_size))
+        return _GradientStage(index, stage, schedule, params, optimizer, scheduler, objective, select_subset,
+                              per_rank, n_batches=math.ceil(per_rank / schedule.batch_size))
 
     def _train_epoch(self, fit: _GradientStage, epoch: int, train_batch: SceneBatch, start: float, bars: Any,
                      batch_task: Any) -> tuple[float, int, float]:
@@ -234,15 +226,16 @@ class Session(RunRecords):
         self.model.train()
         total, count, skipped = 0.0, 0, 0
         bars.reset(batch_task, total=fit.n_batches)
+        batch_size = fit.schedule.batch_size
         for b in range(fit.n_batches):
-            idx = shard[b * fit.batch_size:(b + 1) * fit.batch_size]
+            idx = shard[b * batch_size:(b + 1) * batch_size]
             value = self._step(fit, part(train_batch, idx, self.device))
             if value is None:
                 skipped += 1
             else:
                 total += value * len(idx)
                 count += len(idx)
-            rate = (b + 1) * fit.batch_size / max(time.perf_counter() - start, 1e-9)
+            rate = (b + 1) * batch_size / max(time.perf_counter() - start, 1e-9)
             bars.update(batch_task, advance=1, status=f"loss {total / max(count, 1):.4f}  {rate:,.0f} samples/s")
         train_seconds = time.perf_counter() - start
         # Gradients are all-reduced before the finiteness check, so every rank skipped the same steps.

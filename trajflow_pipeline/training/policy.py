@@ -33,8 +33,6 @@ BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_pa
                "flow_patience": "flow"}
 #: The budget keys as users write them, for messages.
 RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
-#: The prefix of each gradient stage's settings (train.<prefix>_max_epochs, _min_epochs, _patience).
-STAGE_PREFIX = {"autoencoder": "ae", "flow": "flow"}
 
 
 # ---------------------------------------------------------------------------------------------------- epoch budgets
@@ -79,7 +77,7 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
         # a raised limit matters only to a stage that reached it; more patience, to one that stopped below its limit
         epochs = stages.count(stage)
         matters = (epochs >= old_value if key.endswith("_max_epochs")
-                   else epochs < getattr(requested.train, f"{STAGE_PREFIX[stage]}_max_epochs"))
+                   else epochs < requested.train.schedule(stage).max_epochs)
         if finished and matters and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
             return (f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states, so it cannot "
                     f"continue with a larger train.{key}")
@@ -147,15 +145,13 @@ def _reopen(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dic
                   > budget_size(key, getattr(trained.train, key))]
         if not raised:
             continue
-        prefix = STAGE_PREFIX[stage]
-        old_max = getattr(trained.train, f"{prefix}_max_epochs")
-        new_max, new_min, new_patience = (getattr(config.train, f"{prefix}_{name}")
-                                          for name in ("max_epochs", "min_epochs", "patience"))
+        old, new = trained.train.schedule(stage), config.train.schedule(stage)
         change = ", ".join(f"train.{key} {getattr(trained.train, key)} -> {getattr(config.train, key)}"
                            for key in raised)
         epochs = log_stages.count(stage)
-        if (raised == [f"{prefix}_max_epochs"] and epochs < old_max) or epochs >= new_max:
-            say(f"{stage} ran {epochs} of {old_max} epochs: {change} changes nothing there")
+        limit_only = all(key.endswith("_max_epochs") for key in raised)
+        if (limit_only and epochs < old.max_epochs) or epochs >= new.max_epochs:
+            say(f"{stage} ran {epochs} of {old.max_epochs} epochs: {change} changes nothing there")
             continue
         end_path = run_dir / STAGE_END_FILE.format(stage=stage)
         if not end_path.is_file():
@@ -164,7 +160,7 @@ def _reopen(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dic
                              f"new directory")
         end = read_state(end_path, model)
         progress = progress_from(end)
-        if progress.epoch >= new_max or should_stop(progress, new_min, new_patience):
+        if progress.epoch >= new.max_epochs or should_stop(progress, new.min_epochs, new.patience):
             say(f"{stage} would have stopped at its last epoch ({epochs}) with {change} too: nothing changes there")
             continue
         later = model.stages[index + 1:]
