@@ -24,7 +24,8 @@ import torch
 
 from trajflow_pipeline.model import ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.config import RunConfig
-from trajflow_pipeline.stages.train import _adamw, _load_data
+from trajflow_pipeline.training.data import load_data
+from trajflow_pipeline.training.steps import adamw
 
 
 def step_seconds(data, model, batches: int, repeats: int) -> float:
@@ -49,7 +50,7 @@ def epoch_seconds(data, model, threads: int) -> float:
     keep = {id(p) for p in params}
     for p in model.parameters():
         p.requires_grad_(id(p) in keep)
-    optimizer = _adamw(params, 1e-4, 1e-5)
+    optimizer = adamw(params, 1e-4, 1e-5)
     order = torch.randperm(len(data.train), generator=torch.Generator().manual_seed(1))
     start = time.perf_counter()
     for first in range(0, len(order), 128):
@@ -81,7 +82,7 @@ def main() -> None:
         report_side_by_side(Path(__file__), passed, args.against, args.rounds)
         return
     tune_cpu_allocator()  # as `trajflow train` does
-    data = _load_data(args.data, args.fold, RunConfig())
+    data = load_data(args.data, args.fold, RunConfig())
     torch.manual_seed(0)
     model = build_model(ModelConfig(name="trajflow"), data.spec).train()
     found = {f"fold {args.fold} flow step, batch 128, 1 thread, CPU s": [step_seconds(data, model, args.batches,

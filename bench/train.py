@@ -29,7 +29,7 @@ import torch
 
 from trajflow_pipeline.model import DataSpec, ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.toy import crowd_batch
-from trajflow_pipeline.stages.train import _adamw, _finite_gradients
+from trajflow_pipeline.training.steps import adamw, finite_gradients
 
 SPEC = DataSpec(n_past=8, n_future=12, dataset="bench", dt=0.4)
 
@@ -61,14 +61,14 @@ def training_rate(name: str, stage: str, neighbours: int, device: torch.device, 
     keep = {id(p) for p in params}
     for p in model.parameters():
         p.requires_grad_(id(p) in keep)
-    optimizer = _adamw(params, 1e-4, 1e-5)
+    optimizer = adamw(params, 1e-4, 1e-5)
     batch = crowd_batch(128, neighbours=neighbours, seed=1).to(device)
 
     def step() -> None:
         loss = model.stage_loss(stage, batch)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if _finite_gradients(params, 0.0):
+        if finite_gradients(params, 0.0):
             optimizer.step()
 
     wall, cpu = best_time(step, repeats, 10, sync)

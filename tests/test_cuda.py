@@ -17,7 +17,7 @@ import torch
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.model import load_model
 from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
-from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.training import train
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: run on a machine with a GPU")
 

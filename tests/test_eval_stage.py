@@ -18,7 +18,7 @@ from trajflow_pipeline.stages.evaluate import EvalOptions, aggregate_metrics, ev
 from trajflow_pipeline.stages.experiment import load_experiment, run_experiment
 from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.stages.report import report
-from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.training import train
 from trajflow_pipeline.util.claim import claim
 from trajflow_pipeline.util.provenance import code_revision
 

@@ -238,7 +238,7 @@ TINY_RUN = ["train.ae_max_epochs=1", "train.ae_min_epochs=1", "train.flow_max_ep
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
-    from trajflow_pipeline.stages.train import train
+    from trajflow_pipeline.training import train
 
     data = ingest_synthetic_bimodal(tmp_path_factory.mktemp("data") / "bimodal", samples=40, seed=1, quiet=True)
     return train(data, tmp_path_factory.mktemp("runs") / "run", model="trajflow", overrides=TINY_RUN, quiet=True)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from trajflow_pipeline.errors import UsageError
-from trajflow_pipeline.model.config import DataSpec, ModelConfig, RunConfig, TrainConfig, load_config
+from trajflow_pipeline.model.config import DataSpec, ModelConfig, RunConfig, StageSchedule, TrainConfig, load_config
 
 
 def test_defaults_are_the_papers_values() -> None:
@@ -22,6 +22,27 @@ def test_defaults_are_the_papers_values() -> None:
                                                                                                    0.98)
     assert (train.ae_max_epochs, train.flow_max_epochs) == (5000, 500)
 
+
+
+def test_each_gradient_stage_reads_its_own_settings_as_one_schedule() -> None:
+    """TrainConfig.schedule: train.ae_* make the autoencoder's, train.flow_* the flow's (each value distinct, so a
+    swapped or shared setting shows); the config's own keys, which config.toml is written from, stay as they are."""
+    train = load_config(None, ["train.ae_lr=1e-4", "train.ae_weight_decay=2e-4", "train.ae_batch_size=3",
+                               "train.ae_min_epochs=4", "train.ae_max_epochs=5", "train.ae_patience=6",
+                               "train.flow_lr=7e-4", "train.flow_weight_decay=8e-4", "train.flow_batch_size=9",
+                               "train.flow_lr_decay=0.5", "train.flow_min_epochs=11", "train.flow_max_epochs=12",
+                               "train.flow_patience=13"]).train
+    assert train.schedule("autoencoder") == StageSchedule(lr=1e-4, weight_decay=2e-4, batch_size=3, lr_decay=None,
+                                                          min_epochs=4, max_epochs=5, patience=6)
+    assert train.schedule("flow") == StageSchedule(lr=7e-4, weight_decay=8e-4, batch_size=9, lr_decay=0.5,
+                                                   min_epochs=11, max_epochs=12, patience=13)
+    with pytest.raises(ValueError, match="not a gradient stage"):
+        train.schedule("fit")
+    assert [key for key in RunConfig().to_dict()["train"] if key[:3] in ("ae_", "flo")] == [
+        "ae_lr", "ae_weight_decay", "ae_batch_size", "ae_max_epochs", "ae_min_epochs", "ae_patience", "flow_lr",
+        "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs", "flow_min_epochs",
+        "flow_patience", "flow_select", "flow_select_every", "flow_select_problems", "flow_select_samples",
+        "flow_select_max_pooled"]
 
 def test_toml_round_trip(tmp_path: Path) -> None:
     config = load_config(None, ["train.flow_lr=3e-4", "model.flow_hidden=[16, 16]", "model.name='flomo'",

@@ -20,7 +20,7 @@ from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.model import load_training_state, save_training_state
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
-from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.training import train
 from trajflow_pipeline.util.bounds import check_seed
 
 TINY = ["train.ae_max_epochs=1", "train.ae_min_epochs=0", "train.flow_max_epochs=1", "train.flow_min_epochs=0",

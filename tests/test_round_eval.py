@@ -26,7 +26,7 @@ from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
 from trajflow_pipeline.stages.experiment import load_experiment
 from trajflow_pipeline.ingest.round import N_FUTURE, ingest_round
 from trajflow_pipeline.rundir import open_run
-from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.training import train
 
 #: four scripted recordings: one fold then tests an accepted gap (25 steps) and a rejected one (35 steps)
 RECORDINGS = 4

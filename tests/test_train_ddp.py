@@ -33,7 +33,7 @@ def _worker(rank: int, world: int, port: int, out: str) -> None:
                        "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)})
     torch.set_num_threads(1)
     data_module.load_problems = _fake_load_problems
-    from trajflow_pipeline.stages.train import train
+    from trajflow_pipeline.training import train
 
     train(Path(out) / "data", Path(out) / "run", model="trajflow", device="cpu", overrides=OVERRIDES, quiet=True)
 

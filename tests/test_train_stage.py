@@ -1,4 +1,4 @@
-"""`stages.train.train`: learning on a bimodal toy, run directory contents, resume == uninterrupted, bad input.
+"""`training.train`: learning on a bimodal toy, run directory contents, resume == uninterrupted, bad input.
 
 Most tests feed generated SceneBatches through a stand-in for `trajflow_pipeline.data.load_problems` (fast and
 independent of the dataset readers); the last ones train on a real synthetic-bimodal dataset directory.
@@ -23,9 +23,9 @@ from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.normalize import target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
 from train_fakes import FakeProblems
-from trajflow_pipeline.stages import train as train_stage
 from trajflow_pipeline.rundir import open_run
-from trajflow_pipeline.stages.train import train
+from trajflow_pipeline.training import loop as train_loop
+from trajflow_pipeline.training import train
 from trajflow_pipeline.util import provenance
 
 FAST = ["train.ae_min_epochs=0", "train.flow_min_epochs=0"]
@@ -63,10 +63,10 @@ def train_killed_and_resumed(monkeypatch: pytest.MonkeyPatch, run: Path, kill_af
         if (stage, epoch) == kill_after:
             raise Killed()
 
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
     with pytest.raises(Killed):
         train(run.parent / "data", run, resume=run.exists(), **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
     return train(run.parent / "data", run, resume=True, **options)
 
 
@@ -76,10 +76,10 @@ def interrupted_after_first_epoch(monkeypatch: pytest.MonkeyPatch, data: Path, r
     def hook(stage: str, epoch: int) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
     with pytest.raises(KeyboardInterrupt):
         train(data, run, **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
 
 
 def log_of(run: Path) -> pl.DataFrame:
@@ -152,14 +152,14 @@ def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, 
             if (stage, epoch) == stop_at:
                 raise Killed(stop_at)
 
-        monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+        monkeypatch.setattr(train_loop, "_epoch_hook", hook)
         # newer code continues the run after the first interruption: run.json keeps both revisions
         monkeypatch.setattr(provenance, "code_revision", lambda first=stop_at[0] == "autoencoder": (
             "rev-a" if first else "rev-b"))
         with pytest.raises(Killed):  # the first call starts the run: --resume needs one to continue
             train(tmp_path / "data", tmp_path / "parts", resume=(tmp_path / "parts").exists(), **options)
         assert not (tmp_path / "parts" / "final").exists()
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
     train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
     a, b = final_weights(whole), final_weights(tmp_path / "parts")
     assert a.keys() == b.keys()
@@ -185,7 +185,7 @@ def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypat
         if epoch == 1:
             raise Killed()
 
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
     with pytest.raises(Killed):
         train(tmp_path / "data", tmp_path / "run", **options)
     state_path = tmp_path / "run" / "checkpoints" / "state.pt"
@@ -193,13 +193,13 @@ def test_training_from_before_revisions_were_kept_is_marked_unrecorded(monkeypat
     del state["code_revisions"], state["format"], state["format_version"]
     save_training_state(state_path, state)
     monkeypatch.setattr(provenance, "code_revision", lambda: "rev-b")
-    monkeypatch.setattr(train_stage, "_epoch_hook", lambda stage, epoch: hook(stage, epoch - 1))
+    monkeypatch.setattr(train_loop, "_epoch_hook", lambda stage, epoch: hook(stage, epoch - 1))
     with pytest.raises(Killed):  # run.json names the continuing code while it trains, not only once it is done
         train(tmp_path / "data", tmp_path / "run", resume=True, **options)
     info = json.loads((tmp_path / "run" / "run.json").read_text())
     assert (info["status"], info["code_revisions"]) == ("training", ["unrecorded", "rev-b"])
     assert info["machines"] == [provenance.machine_description("cpu")]  # the state still had its machines
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
     train(tmp_path / "data", tmp_path / "run", resume=True, **options)
     assert json.loads((tmp_path / "run" / "run.json").read_text())["code_revisions"] == ["unrecorded", "rev-b"]
     assert provenance.revisions_after(["rev-a", "rev-b"]) == ["rev-a", "rev-b"]
@@ -217,10 +217,10 @@ def test_resume_restores_flomo_randomness(monkeypatch: pytest.MonkeyPatch, tmp_p
         if epoch == 2:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
     with pytest.raises(KeyboardInterrupt):
         train(tmp_path / "data", tmp_path / "parts", **options)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
     train(tmp_path / "data", tmp_path / "parts", resume=True, **options)
     a, b = final_weights(whole), final_weights(tmp_path / "parts")
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -426,10 +426,10 @@ def test_raised_budgets_give_the_run_the_larger_budget_would_have(monkeypatch: p
         if (stage, epoch) == ("flow", 2):
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
     with pytest.raises(KeyboardInterrupt):
         train(data, run, resume=True, **budget_options(4, 4))
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
     # Half-way: the old final model is still there, but the run is not finished, so nothing evaluates it.
     assert json.loads((run / "run.json").read_text())["status"] == "training"
     assert (run / "final" / "model.safetensors").is_file()
@@ -529,17 +529,17 @@ def test_a_raise_interrupted_while_saving_is_completed_by_the_next_resume(monkey
     install_fake_data(monkeypatch, 80, 24)
     data = tmp_path / "data"
     run = train(data, tmp_path / "run", **budget_options(2, 2))
-    real_write = train_stage.atomic_write_text
+    real_write = train_loop.atomic_write_text
 
     def killed_at_config(path: Path, text: str) -> None:
         if Path(path).name == "config.toml":
             raise KeyboardInterrupt
         real_write(path, text)
 
-    monkeypatch.setattr(train_stage, "atomic_write_text", killed_at_config)
+    monkeypatch.setattr(train_loop, "atomic_write_text", killed_at_config)
     with pytest.raises(KeyboardInterrupt):
         train(data, run, resume=True, **budget_options(2, 4))
-    monkeypatch.setattr(train_stage, "atomic_write_text", real_write)
+    monkeypatch.setattr(train_loop, "atomic_write_text", real_write)
     assert json.loads((run / "run.json").read_text())["status"] == "training"
     assert load_config(run / "config.toml").train.flow_max_epochs == 2
     train(data, run, resume=True, quiet=True)
@@ -561,7 +561,7 @@ def test_a_raised_budget_with_val_nll_selection_keeps_what_a_longer_run_keeps(mo
 
     # Scripted checks: the unscheduled one at epoch 3 would win if the continuation remembered it.
     scripted = {2: -1.0, 3: -5.0, 4: -2.0, 5: -3.0}
-    monkeypatch.setattr(train_stage._Session, "_sample_nll", lambda self, batch, subset, epoch: scripted[epoch])
+    monkeypatch.setattr(train_loop.Session, "_sample_nll", lambda self, batch, subset, epoch: scripted[epoch])
     run = train(tmp_path / "data", tmp_path / "run", **options(3))
     assert log_of(run).filter(pl.col("val_nll").is_not_null()).get_column("epoch").to_list() == [2, 3]
     assert json.loads((run / "run.json").read_text())["best"]["flow"]["epoch"] == 3
@@ -588,10 +588,10 @@ def test_a_flow_only_run_from_another_runs_autoencoder_equals_training_from_scra
         if epoch == 2:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(train_stage, "_epoch_hook", hook)
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
     with pytest.raises(KeyboardInterrupt):
         train(data, tmp_path / "reused", autoencoder_from=source, **other_flow)
-    monkeypatch.setattr(train_stage, "_epoch_hook", None)
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
     reused = train(data, tmp_path / "reused", autoencoder_from=source, resume=True, **other_flow)
     same_run(reused, scratch)
     info = json.loads((reused / "run.json").read_text())

@@ -1,4 +1,4 @@
-"""`trajflow train DATA -o RUN`: parse the options and call :func:`trajflow_pipeline.stages.train.train`.
+"""`trajflow train DATA -o RUN`: parse the options and call :func:`trajflow_pipeline.training.train`.
 
 Registered by the application as ``app.command("train")(train_command)``.
 """
@@ -45,7 +45,7 @@ def train_command(
     quiet: Quiet = False,
 ) -> None:
     """Train a model: autoencoder pre-training, then the conditional flow (early stopping on the val split)."""
-    from ..stages.train import train
+    from ..training import train
 
     with user_errors(ctx):
         train(data, out, fold=fold, model=model, config_path=config, overrides=tuple(set_ or ()), seed=seed,

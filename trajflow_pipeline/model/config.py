@@ -110,6 +110,25 @@ GNN_AGGREGATES = ("sum", "mean")
 
 #: How a run picks the flow weights it keeps (TrainConfig.flow_select).
 FLOW_SELECTIONS = ("val_loss", "val_nll")
+#: The stages trained by gradient descent, each with its own settings (TrainConfig.schedule).
+GRADIENT_STAGES = ("autoencoder", "flow")
+
+
+@dataclass(frozen=True)
+class StageSchedule:
+    """How one gradient stage trains: its ``train.ae_*`` or ``train.flow_*`` settings as one object
+    (:meth:`TrainConfig.schedule`), so that training reads ``schedule.max_epochs`` whichever stage it is."""
+
+    lr: float
+    weight_decay: float
+    #: per process under torchrun
+    batch_size: int
+    #: the learning rate's factor per epoch; None: a constant rate (the autoencoder's)
+    lr_decay: float | None
+    min_epochs: int
+    max_epochs: int
+    #: epochs without a better validation loss that end the stage after `min_epochs` (0: no early stopping)
+    patience: int
 
 
 @dataclass(frozen=True)
@@ -156,6 +175,20 @@ class TrainConfig:
     grad_clip: float = bounded(0.0, ge=0)
     #: Batch size used for validation passes (no gradients, so it can be larger).
     eval_batch_size: int = bounded(256, ge=1)
+
+    def schedule(self, stage: str) -> StageSchedule:
+        """The settings of gradient stage `stage` (one of GRADIENT_STAGES): train.ae_* for the autoencoder,
+        train.flow_* for the flow."""
+        if stage == "autoencoder":
+            return StageSchedule(lr=self.ae_lr, weight_decay=self.ae_weight_decay, batch_size=self.ae_batch_size,
+                                 lr_decay=None, min_epochs=self.ae_min_epochs, max_epochs=self.ae_max_epochs,
+                                 patience=self.ae_patience)
+        if stage == "flow":
+            return StageSchedule(lr=self.flow_lr, weight_decay=self.flow_weight_decay,
+                                 batch_size=self.flow_batch_size, lr_decay=self.flow_lr_decay,
+                                 min_epochs=self.flow_min_epochs, max_epochs=self.flow_max_epochs,
+                                 patience=self.flow_patience)
+        raise ValueError(f"{stage!r} is not a gradient stage ({', '.join(GRADIENT_STAGES)})")
 
     def validate(self) -> None:
         """Reject values no optimiser can use, with a message naming the key."""

@@ -26,7 +26,7 @@ interrupted training from its last checkpoint, so an interrupted experiment neve
 config may change between calls only by raising epoch budgets (``train.ae_max_epochs`` / ``train.flow_max_epochs`` /
 ``train.ae_patience`` / ``train.flow_patience`` in ``[train] set`` or ``[models.*] set``; comments, name and
 description are free): runs that the larger budget would not have stopped where the old one did then continue from
-their last epoch (see :mod:`trajflow_pipeline.stages.train`) and are evaluated again.
+their last epoch (see `trajflow train` in docs/usage.md) and are evaluated again.
 ``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
 
 Runs are worked on model by model, the models fitted in closed form (the constant-velocity baseline) first: they
@@ -74,7 +74,7 @@ from ..util.bounds import check_seed
 from ..util.claim import claim, claims_supported
 from ..util.progress import say
 from .evaluate import EvalOptions, evaluate
-from .train import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
+from ..training import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
 
 #: the registered ingests (ingest/registry.py) an experiment config may name: their options are plain TOML values
 INGESTS = ("synthetic-bimodal", "eth-ucy")
@@ -395,7 +395,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
           eval_options: EvalOptions | None = None, selected: frozenset[str] | None = None) -> None:
     """Go through the plan and do each run (of the `selected` names, if given) that is neither finished nor claimed
     by another process."""
-    from .train import train
+    from ..training import train
 
     plan = _plan(config, data)
 

@@ -29,7 +29,7 @@ import polars as pl
 
 from ..data import list_folds
 from ..errors import DataError, TrajflowError, UsageError
-from ..model.config import RunConfig, load_config
+from ..model.config import GRADIENT_STAGES, RunConfig, load_config
 from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
 from ..rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, LOG_FILE, METRICS_FILE, ROME_CACHE_DIR, RUN_FILE,
@@ -37,15 +37,13 @@ from ..rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, LOG_FILE, METRICS_FILE, 
 from ..util import input_files
 from .experiment import ExperimentConfig, load_experiment, plan_order, run_done, run_name, run_overrides
 
-#: the epoch budget keys of each gradient stage (train.<prefix>_min_epochs, _max_epochs, _patience)
-_BUDGET_PREFIX = {"autoencoder": "ae", "flow": "flow"}
 #: epochs whose median time gives the recent seconds per epoch
 _RECENT_EPOCHS = 5
 
 
 @dataclass(frozen=True)
 class StageProgress:
-    """The stage a run is training (or trained last) and how far along it is, judged as train.py's early stopping
+    """The stage a run is training (or trained last) and how far along it is, judged as training's early stopping
     judges it: after `min_epochs`, `patience` epochs without a lower validation loss than the best end the stage."""
 
     stage: str
@@ -381,10 +379,11 @@ def _read_log(path: Path) -> pl.DataFrame | None:
 
 def _budget(stage: str, config: RunConfig) -> dict[str, int]:
     """min_epochs, max_epochs and patience of a gradient stage ({} for a closed-form one)."""
-    prefix = _BUDGET_PREFIX.get(stage)
-    if prefix is None:
+    if stage not in GRADIENT_STAGES:
         return {}
-    return {key: int(getattr(config.train, f"{prefix}_{key}")) for key in ("min_epochs", "max_epochs", "patience")}
+    schedule = config.train.schedule(stage)
+    return {"min_epochs": int(schedule.min_epochs), "max_epochs": int(schedule.max_epochs),
+            "patience": int(schedule.patience)}
 
 
 def _progress(log: pl.DataFrame, config: RunConfig, info: dict[str, Any] | None) -> StageProgress:

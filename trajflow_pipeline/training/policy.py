@@ -1,0 +1,248 @@
+"""When a run may go on, and from where: resume checks, raised epoch budgets and starting from another run's
+autoencoder (what each promises: `trajflow train` in docs/usage.md)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from ..errors import TrajflowError, UsageError
+from ..model.checkpoint import load_training_state
+from ..model.config import RunConfig, load_config
+from ..model.models import TrajectoryModel, build_model
+from ..rundir import (CONFIG_FILE, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained, read_run_config,
+                      read_run_info)
+from ..schemas import data_mismatch
+from ..util import input_files
+from .data import TrainingData
+from .state import LOG_SCHEMA, check_state, progress_from, read_state, should_stop, state_config
+
+#: Training settings that act on the flow stage alone: a run may start from the autoencoder of a run that differs
+#: from it only in these (and the device).
+FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs",
+                   "flow_min_epochs", "flow_patience", "flow_select", "flow_select_every", "flow_select_problems",
+                   "flow_select_samples", "flow_select_max_pooled")
+#: Settings a resumed run may raise (its epoch budgets: how long a stage may go on), with the gradient stage each
+#: one limits. None of them changes an epoch before the stage stops, which is what makes a raise exact.
+BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_patience": "autoencoder",
+               "flow_patience": "flow"}
+#: The budget keys as users write them, for messages.
+RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
+
+
+# ---------------------------------------------------------------------------------------------------- epoch budgets
+
+def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] | None:
+    """The epoch budgets `new` raises over `old` ({key: (old, new)}), or None when the two configs differ in
+    anything else (the device aside) or lower a budget; {} when they are the same run."""
+    old_train, new_train = replace(old.train, device="auto"), replace(new.train, device="auto")
+    unchanged = replace(new_train, **{key: getattr(old_train, key) for key in BUDGET_KEYS})
+    if old.model != new.model or unchanged != old_train:
+        return None
+    raised = {key: (getattr(old_train, key), getattr(new_train, key)) for key in BUDGET_KEYS
+              if getattr(new_train, key) != getattr(old_train, key)}
+    lowered = any(budget_size(key, after) < budget_size(key, before) for key, (before, after) in raised.items())
+    return None if lowered else raised
+
+
+def budget_size(key: str, value: int) -> float:
+    """How long the budget `key` = `value` lets a stage go on, for ordering budgets: a patience of 0 disables early
+    stopping, so it is larger than any other."""
+    return math.inf if key.endswith("_patience") and value == 0 else float(value)
+
+
+def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
+    """Why the run in `run_dir` cannot take `overrides` (a config change an experiment asks for), or None when it
+    can: the same config, raised budgets it can follow, or no run yet. Read from its files, without loading data
+    or weights, so an experiment can check all its runs before it changes anything."""
+    saved = read_run_config(run_dir)
+    if saved is None:
+        return None
+    requested = load_config(overrides=overrides, base=saved)
+    raised = budget_raise(saved, requested)
+    if raised is None:
+        return f"{run_dir}: {first_difference(saved, requested)} (only epoch budgets may be raised)"
+    log_path = run_dir / LOG_FILE
+    log = input_files.read_parquet(log_path) if log_path.is_file() else pl.DataFrame(schema=LOG_SCHEMA)
+    stages = log.get_column("stage").to_list()
+    for key, (old_value, _) in raised.items():
+        stage = BUDGET_KEYS[key]
+        later = any(s != stage for s in stages[stages.index(stage):]) if stage in stages else False
+        finished = later or (stage == "flow" and is_trained(run_dir))
+        # a raised limit matters only to a stage that reached it; more patience, to one that stopped below its limit
+        epochs = stages.count(stage)
+        matters = (epochs >= old_value if key.endswith("_max_epochs")
+                   else epochs < requested.train.schedule(stage).max_epochs)
+        if finished and matters and not (run_dir / STAGE_END_FILE.format(stage=stage)).is_file():
+            return (f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states, so it cannot "
+                    f"continue with a larger train.{key}")
+    return None
+
+
+def first_difference(a: RunConfig, b: RunConfig) -> str:
+    """The first setting in which two configs differ, as "section.key: a vs b"."""
+    left, right = a.to_dict(), b.to_dict()
+    for section in left:
+        for key in left[section]:
+            if left[section][key] != right[section][key]:
+                return f"{section}.{key}: {left[section][key]!r} vs {right[section][key]!r}"
+    return "unknown difference"
+
+
+@dataclass
+class Resumption:
+    """How a resumed run goes on from its checkpoint (:func:`follow_budget`)."""
+
+    #: the config it goes on with
+    config: RunConfig
+    #: the training state to go on from (when `finished`: to save as the run's state)
+    state: dict[str, Any]
+    #: a finished stage was reopened by a raised budget
+    reopened: bool = False
+    #: the state and the config must be saved before training goes on
+    save: bool = False
+    #: the run is finished and stays as it is once its state and config are saved
+    finished: bool = False
+
+
+def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dict[str, Any],
+                  say: Callable[[str], None]) -> Resumption:
+    """Reconcile the checkpoint `state` with the run's `config` when their epoch budgets differ.
+
+    A config that raises the budgets of the checkpoint's moves the run to them (`_reopen`). A checkpoint that
+    raises the config's is an earlier raise whose config.toml was not yet written: the run goes on with it.
+    Any other difference is an error."""
+    trained = state_config(run_dir / STATE_FILE, state)
+    device = config.train.device
+    if replace(trained, train=replace(trained.train, device=device)) == config:
+        return Resumption(config, state)
+    if budget_raise(config, trained):
+        say("continuing the larger budget an interrupted call gave this run")
+        return Resumption(replace(trained, train=replace(trained.train, device=device)), state, save=True)
+    if budget_raise(trained, config) is None:
+        raise TrajflowError(f"{run_dir / STATE_FILE}: checkpoint does not match {CONFIG_FILE}")
+    start, reopened = _reopen(run_dir, config, model, state, trained, say)
+    start = {**start, "config": config.to_json()}
+    if not reopened and int(start["stage_index"]) >= len(model.stages) and is_trained(run_dir):
+        return Resumption(config, start, finished=True)
+    return Resumption(config, start, reopened=reopened, save=True)
+
+
+def _reopen(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dict[str, Any], trained: RunConfig,
+            say: Callable[[str], None]) -> tuple[dict[str, Any], bool]:
+    """The state to continue from under the raised budgets of `config` over `trained`: the end state of the first
+    finished stage whose budget was raised and that the new budget would not have stopped at its last epoch, and
+    True; else `state` and False. Stages after a reopened one are trained again from their start."""
+    log_stages = [row["stage"] for row in state["log"]]
+    for index, stage in enumerate(model.stages[:int(state["stage_index"])]):
+        raised = [key for key, limited in BUDGET_KEYS.items()
+                  if limited == stage and budget_size(key, getattr(config.train, key))
+                  > budget_size(key, getattr(trained.train, key))]
+        if not raised:
+            continue
+        old, new = trained.train.schedule(stage), config.train.schedule(stage)
+        change = ", ".join(f"train.{key} {getattr(trained.train, key)} -> {getattr(config.train, key)}"
+                           for key in raised)
+        epochs = log_stages.count(stage)
+        limit_only = all(key.endswith("_max_epochs") for key in raised)
+        if (limit_only and epochs < old.max_epochs) or epochs >= new.max_epochs:
+            say(f"{stage} ran {epochs} of {old.max_epochs} epochs: {change} changes nothing there")
+            continue
+        end_path = run_dir / STAGE_END_FILE.format(stage=stage)
+        if not end_path.is_file():
+            raise UsageError(f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states "
+                             f"({end_path.name} is missing), so it cannot continue with {change}; train into a "
+                             f"new directory")
+        end = read_state(end_path, model)
+        progress = progress_from(end)
+        if progress.epoch >= new.max_epochs or should_stop(progress, new.min_epochs, new.patience):
+            say(f"{stage} would have stopped at its last epoch ({epochs}) with {change} too: nothing changes there")
+            continue
+        later = model.stages[index + 1:]
+        say(f"continuing {stage} after epoch {epochs} ({change})"
+            + (f"; then {', '.join(later)} from the start" if later else ""))
+        return end, True
+    return state, False
+
+
+# ----------------------------------------------------------------------------------------------------------- resume
+
+def run_info(run_dir: Path) -> dict[str, Any]:
+    """The run's run.json, checked, with every key training writes at its start (:func:`~..rundir.read_run_info`;
+    {} when it has none yet)."""
+    return read_run_info(run_dir, required=RUN_REQUIRED) or {}
+
+
+def resume_fold(run_dir: Path, fold: str | None) -> str | None:
+    """The fold a resumed run continues on: the one it was started for (so ``--resume`` needs no ``--fold``);
+    a different `fold` is refused, since the run's weights were fitted to the other fold's training data."""
+    recorded = run_info(run_dir).get("fold")
+    if recorded is None:
+        return fold
+    if fold is not None and str(fold) != str(recorded):
+        raise UsageError(f"{run_dir} was started for fold {recorded!r}, not {fold!r}; resume it without --fold "
+                         "(or with its own), or train into a new directory")
+    return str(recorded)
+
+
+def check_same_data(run_dir: Path, data: TrainingData, resume: bool) -> None:
+    """On resume, refuse data other than the run started on (other dataset, or its manifest changed)."""
+    if not resume:
+        return
+    mismatch = data_mismatch(run_info(run_dir).get("fingerprint", {}), data.fingerprint)
+    if mismatch:
+        raise UsageError(f"{run_dir} was trained on other data ({mismatch})")
+
+
+# ------------------------------------------------------------------------------------------ autoencoder from a run
+
+def started_from(run_dir: Path, resume: bool, source: Path) -> bool:
+    """Whether `run_dir` already holds a resumable run taken from `source`'s autoencoder (so resume it as is).
+    A resumable run from anything else is refused: its autoencoder is not `source`'s."""
+    if not (resume and (run_dir / STATE_FILE).is_file()):
+        return False
+    recorded = run_info(run_dir).get("autoencoder_from") or {}
+    if recorded.get("run") != str(source.resolve()):
+        raise UsageError(f"{run_dir} already holds a run that did not start from {source}'s autoencoder; resume it "
+                         "without --autoencoder-from, or train into a new directory")
+    return True
+
+
+def source_record(run_dir: Path, source: Path | None, start: dict[str, Any] | None) -> dict[str, Any] | None:
+    """What run.json says about the run whose autoencoder this one took: from `start` for a new run, else what
+    the run's own run.json already says (None for a run that trained its own)."""
+    if start is not None and source is not None:
+        epochs = sum(1 for row in start["log"] if row["stage"] == "autoencoder")
+        return {"run": str(source.resolve()), "autoencoder_epochs": epochs,
+                "autoencoder_best_epoch": int(start["best_epoch"])}
+    return run_info(run_dir).get("autoencoder_from")
+
+
+def autoencoder_start(source: Path, config: RunConfig, data: TrainingData, fold: str | None) -> dict[str, Any]:
+    """The training state a new run with `config` starts from when it takes the autoencoder of the run in `source`:
+    that run's state at the end of its autoencoder stage, carrying `config`. Refused (UsageError naming the
+    difference) unless `source` trained the same model on the same data and fold with the same settings, flow
+    training settings aside, so that its autoencoder is the one `config` would train."""
+    end_path = source / STAGE_END_FILE.format(stage="autoencoder")
+    if not end_path.is_file():
+        raise UsageError(f"{source}: no finished autoencoder stage to start from ({end_path.name} is missing)")
+    info = run_info(source)
+    check_same_data(source, data, resume=True)
+    if info.get("fold") != fold:
+        raise UsageError(f"{source} was trained for fold {info.get('fold')!r}, this run is for {fold!r}")
+    state = load_training_state(end_path)
+    if state.get("model") != config.model.name:
+        raise UsageError(f"{end_path}: a {state.get('model')!r} run; this run trains {config.model.name!r}")
+    trained = state_config(end_path, state)
+    flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, "device")}
+    comparable = replace(trained, train=replace(trained.train, **flow_settings))
+    if comparable != config:
+        raise UsageError(f"{source} trained its autoencoder with other settings "
+                         f"({first_difference(comparable, config)}); only train.flow_* settings may differ")
+    check_state(end_path, state, build_model(trained.model, data.spec))
+    return {**state, "config": config.to_json()}
