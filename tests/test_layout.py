@@ -43,3 +43,15 @@ def test_the_model_names_the_config_accepts_are_the_model_families() -> None:
     from trajflow_pipeline.model.models import MODEL_CLASSES
 
     assert tuple(MODEL_CLASSES) == MODEL_NAMES
+
+
+def test_the_readme_layout_names_every_package_and_module_of_the_top_level() -> None:
+    """The README's Layout section lists exactly the package's folders and top-level modules (errors and the
+    entry points aside)."""
+    readme = (PACKAGE.parent / "README.md").read_text(encoding="utf-8")
+    block = readme.split("## Layout", 1)[1].split("```")[1]
+    listed = {line.split()[0].rstrip("/") for line in block.splitlines()[2:] if line.startswith("  ")}
+    present = {path.name for path in PACKAGE.iterdir() if path.is_dir() and (path / "__init__.py").exists()}
+    present |= {path.stem + ".py" for path in PACKAGE.glob("*.py")} - {"__init__.py", "__main__.py", "errors.py"}
+    present |= {"configs"} if (PACKAGE / "configs").is_dir() else set()
+    assert listed == present
