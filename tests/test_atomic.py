@@ -102,7 +102,7 @@ def test_temporaries_of_live_processes_are_left_alone(tmp_path: Path) -> None:
     try:
         mine = tmp_path / f".result.tmp-{host}-{os.getpid()}-abcdefgh"
         theirs = tmp_path / f".result.tmp-{host}-{sleeper.pid}-abcdefgh"
-        other_host = tmp_path / f".result.tmp-{'0000' if host != '0000' else '0001'}-1-abcdefgh"
+        other_host = tmp_path / f".result.tmp-{'0' * 12 if host != '0' * 12 else '1' * 12}-1-abcdefgh"
         for path in (mine, theirs, other_host):
             path.mkdir()
         atomic.recover(tmp_path / "result")
@@ -142,3 +142,13 @@ def test_a_fifo_named_like_an_input_is_refused_not_waited_on(tmp_path: Path) -> 
                            capture_output=True, text=True, timeout=120)
     assert child.returncode == 1
     assert child.stderr.strip() == f"error: {data / 'dataset.json'}: is a FIFO, not a file that can be read"
+
+
+def test_a_name_that_only_looks_like_a_temporary_is_left_alone(tmp_path: Path) -> None:
+    """A pid no process can have (beyond pid_t) is not taken for a dead process, and nothing raises."""
+    odd = tmp_path / f".result.tmp-{atomic._host_tag()}-9999999999-abcdefgh"
+    odd.mkdir()
+    atomic.recover(tmp_path / "result")
+    with atomic.atomic_directory(tmp_path / "result") as folder:
+        (folder / "f").write_text("x")
+    assert siblings(tmp_path) == sorted([odd.name, "result"])

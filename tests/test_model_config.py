@@ -105,3 +105,10 @@ def test_shipped_model_configs_load() -> None:
     for path in files:
         load_config(path)
     assert load_config(folder / "paper.toml") == RunConfig()
+
+
+def test_the_last_override_of_a_setting_wins_however_it_is_spelled() -> None:
+    from trajflow_pipeline.model.config import RunConfig, apply_overrides
+
+    config = apply_overrides(RunConfig(), ["train.flow_lr=0.2", "flow_lr=0.1", "train.flow_lr=0.3"])
+    assert config.train.flow_lr == 0.3

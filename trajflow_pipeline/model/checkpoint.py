@@ -65,7 +65,8 @@ def read_model_metadata(path: str | Path) -> dict[str, Any]:
 
 def load_model(path: str | Path, expected_model: str | None = None,
                device: str | torch.device = "cpu") -> TrajectoryModel:
-    """Rebuild a model from a model file (or a run directory holding ``final/model.safetensors``), in eval mode.
+    """Rebuild a model from a model file (or a folder holding ``model.safetensors``, such as a run's final/), in
+    eval mode.
 
     Raises :class:`DataError` naming the file when it is missing, unreadable, of another format version, of
     another model family than `expected_model`, or does not match the architecture its config describes.

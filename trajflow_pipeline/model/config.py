@@ -295,7 +295,9 @@ def apply_overrides(config: RunConfig, overrides: typing.Sequence[str]) -> RunCo
         if "=" not in item:
             raise UsageError(f"--set expects key=value, got {item!r}")
         key, raw = (part.strip() for part in item.split("=", 1))
-        values[key] = _parse_value(raw)
+        section, name = _resolve_key(key)
+        values.pop(f"{section}.{name}", None)  # the last --set of a setting wins, however it is spelled
+        values[f"{section}.{name}"] = _parse_value(raw)
     return with_values(config, values, source="--set")
 
 

@@ -192,7 +192,7 @@ class Dataset:
         version = metadata.get(META_SCHEMA_VERSION)
         if version is None:
             raise DataError("not a trajflow table (no trajflow.schema_version metadata)", path=path)
-        if int(version) != SCHEMA_VERSION:
+        if not version.isdigit() or int(version) != SCHEMA_VERSION:
             raise DataError(f"schema version {version}, this trajflow reads version {SCHEMA_VERSION}", path=path)
         if metadata.get(META_DATASET) != self.meta.dataset:
             raise DataError(f"belongs to dataset '{metadata.get(META_DATASET)}', not '{self.meta.dataset}'",
@@ -242,7 +242,7 @@ class Dataset:
             raise DataError("tracks table is missing (no tracks/part-*.parquet)", path=self.path / TRACKS_DIR)
         for shard in shards:
             try:
-                schema = pq.read_schema(shard)
+                schema = pq.read_schema(input_files.regular_file(shard))
             except (pa.ArrowException, OSError) as error:
                 raise DataError(f"cannot read Parquet file ({error})", path=shard) from None
             metadata = {k.decode(): v.decode() for k, v in (schema.metadata or {}).items()

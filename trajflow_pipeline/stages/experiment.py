@@ -100,9 +100,18 @@ class ExperimentConfig:
     source: dict[str, Any] = field(default_factory=dict)
 
 
-def _option_value(default: Any, value: Any) -> Any:
-    """A [data] option as its ingest takes it: of its default's type (samples = 3000.0 -> 3000)."""
-    return type(default)(value) if isinstance(default, (int, float, str)) and not isinstance(default, bool) else value
+def _option_value(default: Any, value: Any, key: str) -> Any:
+    """A [data] option as its ingest takes it: of its default's type (samples = 3000.0 -> 3000); a value that is
+    not one is a UsageError naming the key."""
+    if not isinstance(default, (int, float, str)) or isinstance(default, bool):
+        return value
+    try:
+        if isinstance(value, (list, dict, bool)) or (isinstance(default, int) and float(value) != int(value)):
+            raise ValueError(value)
+        return type(default)(value)
+    except (TypeError, ValueError):
+        raise UsageError(f"experiment config: [data] {key} must be {type(default).__name__}, got {value!r}") \
+            from None
 
 
 def _ingest_options(name: str | None) -> tuple[str, ...]:
@@ -220,7 +229,7 @@ def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:
         raise UsageError(f"[data] ingest = {adapter.name!r} needs raw = {adapter.raw}")
     defaults = adapter.options
     return adapter.run(None if raw is None else Path(raw), config.data_path, quiet=quiet,
-                       **{key: _option_value(defaults[key], value) for key, value in options.items()})
+                       **{key: _option_value(defaults[key], value, key) for key, value in options.items()})
 
 
 def _folds(config: ExperimentConfig, data: Path) -> list[str | None]:

@@ -10,6 +10,7 @@ from ..errors import UsageError
 from ..model.config import MODEL_NAMES, RunConfig, load_config, with_values
 from ..model.runtime import resolve_device, tune_cpu_allocator
 from ..rundir import CONFIG_FILE, is_trained, read_run_config
+from ..util.atomic import recover
 from ..util.progress import say
 from ..util.provenance import code_revision
 from .data import load_data
@@ -82,6 +83,7 @@ def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Se
                              f"changing options (only {RAISABLE} may be raised), "
                              f"or train into a new directory")
         return _with_options(requested, None, None, device), saved
+    recover(run_dir / CONFIG_FILE)  # what a run killed at its start left (a temporary config.toml) is no run
     if not resume and run_dir.exists() and any(run_dir.iterdir()):
         raise UsageError(f"{run_dir} already holds a run; pass --resume to continue it or choose a new directory")
     return _with_options(load_config(config_path, overrides), model, seed, device).validate(), None

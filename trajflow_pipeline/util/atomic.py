@@ -3,8 +3,9 @@
 Everything trajflow writes goes to a temporary sibling first and is renamed into place (a rename within one
 directory is atomic on POSIX; a directory that replaces another is swapped in with one atomic exchange where the
 system has one), so an interrupted run leaves either the old result or the new one. A temporary sibling's name
-says which process made it, so what a killed run left behind is recognised and cleaned up (or, for an old version
-set aside by the two-rename fallback, put back) by the next write or read of the same path: :func:`recover`.
+says which process made it, so what a killed run left in a folder is recognised and cleaned up (or, for an old
+version set aside by the two-rename fallback, put back) by the next atomic write into that folder, or by opening a
+dataset that is missing: :func:`recover`.
 """
 
 from __future__ import annotations
@@ -29,19 +30,25 @@ from .progress import say
 #: longest file name (bytes) that common file systems take (ext4, XFS, APFS, NTFS: 255)
 NAME_MAX = 255
 _RANDOM = 8  # random characters in a temporary name
-#: the owner part's largest size in bytes: ``old-``, 4 hex of the host, a pid of up to 10 digits, two dashes
-_OWNER_MAX = 20
+#: the owner part's largest size in bytes: ``old-``, 12 hex of the host, a pid of up to 10 digits, two dashes
+_OWNER_MAX = 28
 #: a temporary sibling's name: the (perhaps cut) final name, then the owner (``old-`` when it holds an old version
 #: set aside while its replacement moves in), the random part and any suffix
-_TEMPORARY = re.compile(r"\.(?P<name>.+)\.tmp-(?P<old>old-)?(?P<host>[0-9a-f]{4})-(?P<pid>[0-9]{1,10})-"
+_TEMPORARY = re.compile(r"\.(?P<name>.+)\.tmp-(?P<old>old-)?(?P<host>[0-9a-f]{12})-(?P<pid>[0-9]{1,10})-"
                         r"[a-z0-9_]{8}(?P<suffix>.*)", re.DOTALL)
 #: how a long final name ends once cut to fit (see _tmp_prefix): the name it was cut from is not known
 _CUT = re.compile(r"~[0-9a-f]{12}$")
 
 
+@functools.cache
 def _host_tag() -> str:
-    """4 hex digits of this machine's name: a pid identifies a process only on the machine that made it."""
-    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:4]
+    """12 hex digits of this machine's name and process-id namespace: a pid identifies a process only on the
+    machine, and in the container, that made it (containers may share a host name and a folder)."""
+    try:
+        namespace = str(os.stat("/proc/self/ns/pid").st_ino)
+    except OSError:
+        namespace = ""
+    return hashlib.sha256(f"{socket.gethostname()}/{namespace}".encode()).hexdigest()[:12]
 
 
 def _owner(old: bool = False) -> str:
@@ -72,13 +79,13 @@ def _tmp_sibling(path: Path, suffix: str = "", *, old: bool = False) -> Path:
 
 def _alive(host: str, pid: int) -> bool:
     """Whether the process that made a temporary name may still be writing it (always true for another host's)."""
-    if host != _host_tag() or pid == os.getpid():
+    if host != _host_tag() or pid == os.getpid() or os.name == "nt":  # Windows: signal 0 is CTRL_C_EVENT
         return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:  # another user's live process
+    except (PermissionError, OverflowError, ValueError, OSError):  # another user's, or not a pid: keep it
         return True
     return True
 
@@ -114,7 +121,14 @@ def _leftovers(path: Path) -> list[_Leftover]:
         elif not _CUT.search(match["name"]):
             final = path.parent / match["name"]
         found.append(_Leftover(Path(entry.path), bool(match["old"]), final))
-    return sorted(found, key=lambda leftover: leftover.path.lstat().st_mtime_ns, reverse=True)
+    return sorted(found, key=lambda leftover: _mtime(leftover.path), reverse=True)
+
+
+def _mtime(path: Path) -> int:
+    try:
+        return path.lstat().st_mtime_ns
+    except OSError:  # removed meanwhile (another process recovering the same folder)
+        return 0
 
 
 def _remove(path: Path) -> None:
@@ -136,14 +150,18 @@ def recover(path: str | Path) -> None:
     for leftover in _leftovers(path):
         if leftover.old and leftover.final is None:
             continue  # a cut long name: only a write or read of that name knows where it goes
-        if leftover.old and not os.path.lexists(leftover.final):
-            os.replace(leftover.path, leftover.final)
-            say(("recovered", "yellow"), f" {leftover.final}: put back the previous version, which an "
-                f"interrupted replacement had left as {leftover.path.name}")
+        try:
+            if leftover.old and not os.path.lexists(leftover.final):
+                os.replace(leftover.path, leftover.final)
+                say(("recovered", "yellow"), f" {leftover.final}: put back the previous version, which an "
+                    f"interrupted replacement had left as {leftover.path.name}")
+                continue
+            _remove(leftover.path)
+        except OSError:  # another process got there first, or it is not ours to remove: the write goes on
             continue
-        _remove(leftover.path)
-        what = "an old version already replaced" if leftover.old else "left by an interrupted run"
-        say(("cleaned up", "yellow"), f" {leftover.path}: {what}")
+        if not os.path.lexists(leftover.path):
+            what = "an old version already replaced" if leftover.old else "left by an interrupted run"
+            say(("cleaned up", "yellow"), f" {leftover.path}: {what}")
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
