@@ -15,7 +15,8 @@ from trajflow_pipeline.errors import TrajflowError, UsageError
 from trajflow_pipeline.metrics import METRIC_NAMES
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.stages.evaluate import EvalOptions, aggregate_metrics, evaluate
-from trajflow_pipeline.stages.experiment import load_experiment, run_experiment
+from trajflow_pipeline.stages.experiment import run_experiment
+from trajflow_pipeline.stages.experiment_config import load_experiment
 from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.training import train

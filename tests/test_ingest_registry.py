@@ -13,7 +13,7 @@ from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.ingest.base import Ingest, collect_warnings, warn
 from trajflow_pipeline.ingest.registry import NAMES, get_ingest
-from trajflow_pipeline.stages.experiment import INGESTS, load_experiment
+from trajflow_pipeline.stages.experiment_config import INGESTS, load_experiment
 
 MODULES = {"eth-ucy": "eth_ucy", "synthetic-bimodal": "synthetic", "csv": "csv", "round": "round",
            "nuscenes": "nuscenes", "forking-paths": "forking_paths"}

@@ -11,7 +11,8 @@ import pytest
 
 from trajflow_pipeline.model.config import MODEL_NAMES, load_config
 from trajflow_pipeline.report.paper import PAPER_TRAJFLOW
-from trajflow_pipeline.stages.experiment import INGESTS, load_experiment, run_experiment
+from trajflow_pipeline.stages.experiment import run_experiment
+from trajflow_pipeline.stages.experiment_config import INGESTS, load_experiment
 from trajflow_pipeline.stages.report import report
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "paper"

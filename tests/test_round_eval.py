@@ -23,7 +23,7 @@ from trajflow_pipeline.model.autoencoder import TrajectoryAutoencoder
 from trajflow_pipeline.model.encoders import MapEncoder
 from trajflow_pipeline.schemas import open_dataset
 from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
-from trajflow_pipeline.stages.experiment import load_experiment
+from trajflow_pipeline.stages.experiment_config import load_experiment
 from trajflow_pipeline.ingest.round import N_FUTURE, ingest_round
 from trajflow_pipeline.rundir import open_run
 from trajflow_pipeline.training import train

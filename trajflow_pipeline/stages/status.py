@@ -35,7 +35,8 @@ from ..model.models import MODEL_CLASSES
 from ..rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, LOG_FILE, METRICS_FILE, ROME_CACHE_DIR, RUN_FILE,
                       is_evaluated, read_run_config, read_run_info)
 from ..util import input_files
-from .experiment import ExperimentConfig, load_experiment, plan_order, run_done, run_name, run_overrides
+from .experiment import plan_order, run_done, run_name, run_overrides
+from .experiment_config import ExperimentConfig, load_experiment
 
 #: epochs whose median time gives the recent seconds per epoch
 _RECENT_EPOCHS = 5
