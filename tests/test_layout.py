@@ -55,3 +55,14 @@ def test_the_readme_layout_names_every_package_and_module_of_the_top_level() -> 
     present |= {path.stem + ".py" for path in PACKAGE.glob("*.py")} - {"__init__.py", "__main__.py", "errors.py"}
     present |= {"configs"} if (PACKAGE / "configs").is_dir() else set()
     assert listed == present
+
+
+def test_the_cli_starts_without_torch() -> None:
+    """`trajflow --help` (and any command before it runs) loads no torch: the CLI imports stages and models only
+    inside the commands, and the model package loads its submodules on first use."""
+    import subprocess
+    import sys
+
+    probe = "import sys, trajflow_pipeline.cli.app; print('torch' in sys.modules)"
+    child = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120)
+    assert child.stdout.strip() == "False"
