@@ -24,8 +24,7 @@ import torch
 
 from trajflow_pipeline.model import ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.config import RunConfig
-from trajflow_pipeline.training.data import load_data
-from trajflow_pipeline.training.steps import adamw
+from release_compat import adamw, load_data
 
 
 def step_seconds(data, model, batches: int, repeats: int) -> float:

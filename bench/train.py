@@ -29,7 +29,7 @@ import torch
 
 from trajflow_pipeline.model import DataSpec, ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.toy import crowd_batch
-from trajflow_pipeline.training.steps import adamw, finite_gradients
+from release_compat import adamw, finite_gradients
 
 SPEC = DataSpec(n_past=8, n_future=12, dataset="bench", dt=0.4)
 

@@ -104,18 +104,53 @@ class SocialGNN(nn.Module):
             k = max(1, k)
             return self._readout(x[:, :k], pos[:, :k], onehot[:, :k], nodes_mask[:, :k], batch * k * k <= 2 * edges)
         order = torch.argsort(extent, stable=True)
-        ends, counts = torch.stack((extent[order], nodes_mask.sum(1)[order])).tolist()  # one transfer to the host
+        ends = extent[order].tolist()                                                  # one transfer to the host
         bounds = size_groups(ends, self.GROUP_EDGES, self.GROUP_PADDING)
-        # Gathered once with index_select (its backward is one index_add; indexing each group from the whole batch
-        # would backpropagate a batch-sized tensor per group) and split into the groups.
-        sizes = [stop - start for start, stop in bounds]
-        groups = zip(*(t.index_select(0, order).split(sizes) for t in (x, pos, onehot, nodes_mask)))
-        readouts = []
-        for (start, stop), (x_g, pos_g, onehot_g, mask_g) in zip(bounds, groups):
-            k = max(1, ends[stop - 1])
-            dense = (stop - start) * k * k <= 2 * sum(c * c for c in counts[start:stop])
-            readouts.append(self._readout(x_g[:, :k], pos_g[:, :k], onehot_g[:, :k], mask_g[:, :k], dense))
-        return torch.cat(readouts).index_select(0, torch.argsort(order))
+        return self._grouped_rounds(x, pos, onehot, nodes_mask, order, [(stop - start, max(1, ends[stop - 1]))
+                                                                        for start, stop in bounds])
+
+    def _grouped_rounds(self, x: Tensor, pos: Tensor, onehot: Tensor, mask: Tensor, order: Tensor,
+                        shapes: list[tuple[int, int]]) -> Tensor:
+        """The rounds and the read-out with the problems in `order` split into consecutive groups of `shapes`
+        (members, extent), each group on its padded (members, extent, extent) edge layout.
+
+        The nodes of all groups are packed into one (R, width) tensor, group after group, each group's block a
+        (members x extent) grid: the node layers of a round then run once over all groups, and only the edge
+        block (the per-edge sum, distance term, ReLU and pooling) runs per group, on views of the packed
+        tensors. Returns the graph encodings (B, width) in batch order."""
+        batch, n = mask.shape
+        # Packed row -> flattened (problem, node) index: group by group, problem by problem, node 0..extent-1.
+        start, pieces = 0, []
+        for members, extent in shapes:
+            problems = order[start:start + members]
+            pieces.append((problems[:, None] * n + torch.arange(extent, device=order.device)).reshape(-1))
+            start += members
+        rows = torch.cat(pieces)
+        sizes = [members * extent for members, extent in shapes]
+        x, pos, onehot = (t.reshape(batch * n, -1).index_select(0, rows) for t in (x, pos, onehot))
+        real = mask.reshape(-1).index_select(0, rows)                                             # (R,)
+        problem = torch.div(rows, n, rounding_mode="floor")                                       # (R,)
+        counts = mask.sum(1).to(x.dtype)
+        senders = counts.index_select(0, problem)[:, None]                                        # (R, 1)
+        dists = []
+        for (members, extent), pos_g in zip(shapes, pos.split(sizes)):
+            pos_g = pos_g.view(members, extent, 2)
+            rel = pos_g[:, :, None, :] - pos_g[:, None, :, :]
+            dists.append(torch.sqrt((rel ** 2).sum(-1, keepdim=True) + 1e-12))                    # (g, k, k, 1)
+        padding = ~real[:, None]
+        for sender, receiver, sender_term, receiver_term, w_dist, out, update in self._layers(onehot, pos):
+            # A padding sender's term is -inf, so its edges are exactly 0 after the ReLU (and pass no gradient).
+            from_b = (sender(x) + sender_term).masked_fill(padding, float("-inf"))                 # (R, width)
+            to_a = receiver(x) + receiver_term
+            pooled = []
+            for (members, extent), from_g, to_g, dist in zip(shapes, from_b.split(sizes), to_a.split(sizes), dists):
+                from_g, to_g = from_g.view(members, extent, -1), to_g.view(members, extent, -1)
+                hidden = torch.addcmul(to_g[:, :, None, :], dist, w_dist).add_(from_g[:, None, :, :])
+                pooled.append(hidden.relu_().sum(2).reshape(members * extent, -1))
+            x = update(torch.cat((x, self._message(torch.cat(pooled), senders, out)), dim=-1)) + x
+        weights = real.to(x.dtype)[:, None]
+        summed = x.new_zeros(batch, x.shape[-1]).index_add_(0, problem, x * weights)
+        return summed / counts.clamp(min=1.0)[:, None]
 
     def _readout(self, x: Tensor, pos: Tensor, onehot: Tensor, mask: Tensor, dense: bool) -> Tensor:
         """The rounds on one group of problems (on the padded layout if `dense`, else on the real edges), then the

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 from functools import partial
 
 import torch
@@ -35,9 +36,11 @@ class RationalQuadraticSpline(Transform):
 
     Mathematically identical to zuko's ``MonotonicRQSTransform`` (same unconstrained parameterisation: soft-clamped
     bin widths / heights through a softmax, knot derivatives through exp, minimum slope ``slope``), but computed
-    from one parameter tensor with fewer, larger tensor operations, and with an inverse that returns its
-    log-determinant without a second bin search. Acts on the last dimension as a whole (event dim 1): the log-
-    determinants are summed over it.
+    from one parameter tensor with fewer, larger tensor operations, with an inverse that returns its
+    log-determinant without a second bin search, and with a written-out backward pass for the forward direction
+    (:class:`_SplineForward`: training evaluates it once per coupling and step, and autograd's recorded version
+    cost four times the forward). Acts on the last dimension as a whole (event dim 1): the log-determinants are
+    summed over it.
 
     ``phi`` has shape (..., D, 3K - 1): K widths, K heights, K - 1 inner derivatives per element.
     """
@@ -52,69 +55,33 @@ class RationalQuadraticSpline(Transform):
         bins = (phi.shape[-1] + 1) // 3
         if bins < 2:
             raise ValueError("a rational-quadratic spline needs at least 2 bins")
+        self.phi = phi
         self.limit = abs(math.log(slope))
-        # zuko's soft clamp of the width / height logits, u / (1 + |2u / log slope|), bounds them to
-        # (-limit/2, limit/2), so exp needs no max-shift (softmax = exp / sum).
-        widths_heights = phi[..., :2 * bins]
-        expd = (widths_heights / widths_heights.abs().mul_(2 / self.limit).add_(1)).exp()
-        cumulative = expd.unflatten(-1, (2, bins)).cumsum(-1)                                  # (..., 2, K)
-        knots = (cumulative * ((2 * bound) / cumulative[..., -1:])).sub_(bound)
-        # Knots 1..K of each axis (knot 0 is -B).
-        self.horizontal, self.vertical = knots.unbind(-2)
-        # Unconstrained derivatives at the K - 1 inner knots (1 at both ends); only the two around each value's
-        # bin are ever used, so their clamp and exp are applied after the lookup.
-        self.raw_derivatives = phi[..., 2 * bins:]
         self.bound = bound
         self.bins = bins
 
-    def _locate(self, value: Tensor, knots: Tensor) -> tuple[Tensor, ...]:
-        """Bin of each value among `knots` and the bin's corner values; `outside` marks values not in (-B, B].
-
-        The first bin's lower knot (-B) and the end derivatives (1) are filled in after the lookups, with masked
-        fills of scalars: cheaper than padding the knot tensors, which for sampling are large."""
-        bins = self.bins
-        k = (knots[..., :bins - 1] < value[..., None]).sum(-1, keepdim=True)                 # bin in [0, K-1]
-        below = (k - 1).clamp_(min=0)
-        edges = torch.cat((below, k), dim=-1)
-        x0, x1 = self.horizontal.gather(-1, edges).unbind(-1)
-        y0, y1 = self.vertical.gather(-1, edges).unbind(-1)
-        raw = self.raw_derivatives.gather(-1, torch.cat((below, k.clamp(max=bins - 2)), dim=-1))
-        d0, d1 = (raw / raw.abs().mul_(1 / self.limit).add_(1)).exp().unbind(-1)   # zuko: u / (1 + |u / log slope|)
-        first, last = (k == 0).squeeze(-1), (k == bins - 1).squeeze(-1)
-        x0, y0 = x0.masked_fill(first, -self.bound), y0.masked_fill(first, -self.bound)
-        d0, d1 = d0.masked_fill(first, 1.0), d1.masked_fill(last, 1.0)
-        outside = (value <= -self.bound) | (value > self.bound)
-        return outside, x0, x1, y0, y1, d0, d1
-
-    @staticmethod
-    def _log_jacobian(z: Tensor, zz: Tensor, s: Tensor, d0: Tensor, d1: Tensor) -> Tensor:
-        """log dy/dx of the bin's rational quadratic at z, with zz = z (1 - z)."""
-        numerator = s * s * (2 * s * zz + d0 * (1 - z) ** 2 + d1 * z * z)
-        return numerator.log() - 2 * (s + (d0 + d1 - 2 * s) * zz).log()
-
     def call_and_ladj(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        outside, x0, x1, y0, y1, d0, d1 = self._locate(x, self.horizontal)
-        dx, dy = x1 - x0, y1 - y0
-        s = dy / dx
-        z = ((x - x0) / dx).masked_fill(outside, 0.0)
-        zz = z * (1 - z)
-        y = y0 + dy * (s * z * z + d0 * zz) / (s + (d0 + d1 - 2 * s) * zz)
-        ladj = self._log_jacobian(z, zz, s, d0, d1).masked_fill(outside, 0.0)
-        return torch.where(outside, x, y), ladj.sum(-1)
+        if torch.is_grad_enabled() and (self.phi.requires_grad or x.requires_grad):
+            return _SplineForward.apply(self.phi, x, self.bound, self.limit)
+        y, ladj, _ = _spline_forward(self.phi, x, self.bound, self.limit, keep=False)
+        return y, ladj
 
     def inverse_and_ladj(self, y: Tensor) -> tuple[Tensor, Tensor]:
         """x = f^-1(y) and log |det J_{f^-1}(y)| (summed over the last dimension)."""
-        outside, x0, x1, y0, y1, d0, d1 = self._locate(y, self.vertical)
-        dx, dy = x1 - x0, y1 - y0
-        s = dy / dx
+        horizontal, vertical, raw_derivatives = _knots(self.phi, self.bound, self.limit)
+        outside, k, x0, w, y0, h, d0, d1 = _locate(y, vertical, horizontal, vertical, raw_derivatives,
+                                                   self.bound, self.limit)[:8]
+        s = h / w
         rel = (y - y0).masked_fill(outside, 0.0)
         t = d0 + d1 - 2 * s
-        a = dy * (s - d0) + rel * t
-        b = dy * d0 - rel * t
+        a = h * (s - d0) + rel * t
+        b = h * d0 - rel * t
         c = -s * rel
         z = 2 * c / (-b - (b * b - 4 * a * c).clamp(min=0).sqrt())
-        x = x0 + z * dx
-        ladj = self._log_jacobian(z, z * (1 - z), s, d0, d1).neg_().masked_fill(outside, 0.0)
+        x = x0 + z * w
+        zz = z * (1 - z)
+        polynomial = 2 * s * zz + d0 * (1 - z) ** 2 + d1 * z * z
+        ladj = (2 * (s + t * zz).log() - (s * s * polynomial).log()).masked_fill(outside, 0.0)
         return torch.where(outside, y, x), ladj.sum(-1)
 
     def _call(self, x: Tensor) -> Tensor:
@@ -125,6 +92,143 @@ class RationalQuadraticSpline(Transform):
 
     def log_abs_det_jacobian(self, x: Tensor, y: Tensor) -> Tensor:
         return self.call_and_ladj(x)[1]
+
+
+def _soft_clamp(u: Tensor, scale: float) -> tuple[Tensor, Tensor]:
+    """zuko's soft clamp u / (1 + |u| scale) and its denominator (1 + |u| scale), whose inverse square is the
+    clamp's derivative."""
+    denominator = u.abs().mul_(scale).add_(1)
+    return u / denominator, denominator
+
+
+def _knots(phi: Tensor, bound: float, limit: float,
+           keep: list[Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Knots 1..K on each axis (knot 0 is -B) and the raw inner derivatives of splines `phi` (..., D, 3K - 1).
+
+    zuko's soft clamp u / (1 + |2u / log slope|) bounds the width / height logits to (-limit/2, limit/2), so exp
+    needs no max-shift (softmax = exp / sum). The derivatives stay raw: only the two around each value's bin are
+    used, so their clamp and exp are applied after the lookup. With `keep`, what the backward pass needs is
+    appended to it."""
+    bins = (phi.shape[-1] + 1) // 3
+    clamped, denominator = _soft_clamp(phi[..., :2 * bins], 2 / limit)
+    expd = clamped.exp_()
+    cumulative = expd.unflatten(-1, (2, bins)).cumsum(-1)                                      # (..., D, 2, K)
+    knots = (cumulative * ((2 * bound) / cumulative[..., -1:])).sub_(bound)
+    if keep is not None:
+        keep += [expd, denominator, cumulative]
+    horizontal, vertical = knots.unbind(-2)
+    return horizontal, vertical, phi[..., 2 * bins:]
+
+
+def _locate(value: Tensor, knots: Tensor, horizontal: Tensor, vertical: Tensor, raw_derivatives: Tensor,
+            bound: float, limit: float) -> tuple[Tensor, ...]:
+    """Bin k of each value among `knots` (one of `horizontal` / `vertical`) and the bin's corner, sizes and end
+    derivatives: outside (values not in (-B, B]), k, x0, width, y0, height, d0, d1, then the derivatives' clamp
+    denominators (for the backward pass).
+
+    The first bin's lower knot (-B) and the end derivatives (1) are filled in after the lookups, with masked fills
+    of scalars: cheaper than padding the knot tensors, which for sampling are large."""
+    bins = horizontal.shape[-1]
+    k = (knots[..., :bins - 1] < value[..., None]).sum(-1, keepdim=True)                      # bin in [0, K-1]
+    below = (k - 1).clamp_(min=0)
+    edges = torch.cat((below, k), dim=-1)
+    x0, x1 = horizontal.gather(-1, edges).unbind(-1)
+    y0, y1 = vertical.gather(-1, edges).unbind(-1)
+    raw = raw_derivatives.gather(-1, torch.cat((below, k.clamp(max=bins - 2)), dim=-1))
+    clamped, denominator = _soft_clamp(raw, 1 / limit)                       # zuko: u / (1 + |u / log slope|)
+    d0, d1 = clamped.exp_().unbind(-1)
+    k = k.squeeze(-1)
+    first, last = k == 0, k == bins - 1
+    x0, y0 = x0.masked_fill(first, -bound), y0.masked_fill(first, -bound)
+    d0, d1 = d0.masked_fill(first, 1.0), d1.masked_fill(last, 1.0)
+    outside = (value <= -bound) | (value > bound)
+    return outside, k, x0, x1 - x0, y0, y1 - y0, d0, d1, denominator
+
+
+def _spline_forward(phi: Tensor, x: Tensor, bound: float, limit: float,
+                    keep: bool) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:
+    """y = f(x), log dy/dx summed over the last dimension and, with `keep`, what :class:`_SplineForward`'s
+    backward pass needs."""
+    saved: list[Tensor] | None = [] if keep else None
+    horizontal, vertical, raw_derivatives = _knots(phi, bound, limit, saved)
+    outside, k, x0, w, y0, h, d0, d1, denominator = _locate(x, horizontal, horizontal, vertical, raw_derivatives,
+                                                            bound, limit)
+    s = h / w
+    z = ((x - x0) / w).masked_fill(outside, 0.0)
+    zz = z * (1 - z)
+    den = s + (d0 + d1 - 2 * s) * zz
+    numerator = s * z * z + d0 * zz
+    polynomial = 2 * s * zz + d0 * (1 - z) ** 2 + d1 * z * z
+    y = y0 + h * numerator / den
+    ladj = ((s * s * polynomial).log() - 2 * den.log()).masked_fill(outside, 0.0)
+    if saved is not None:
+        saved += [outside, k, z, w, h, s, d0, d1, denominator, den, numerator, polynomial]
+    return torch.where(outside, x, y), ladj.sum(-1), tuple(saved or ())
+
+
+class _SplineForward(torch.autograd.Function):
+    """The spline's forward direction (y, summed log-determinant) with its gradients written out.
+
+    Per element, with z = (x - x0) / w, s = h / w, zz = z (1 - z), den = s + (d0 + d1 - 2s) zz,
+    y = y0 + h (s z^2 + d0 zz) / den and ladj = log(s^2 P) - 2 log den, P = 2 s zz + d0 (1 - z)^2 + d1 z^2. The
+    partial derivatives with respect to z, s, d0, d1 and h go back to x, the bin's knots (scattered to the two
+    knots of the bin), its end derivatives (through their soft clamp and exp), and then through the knots'
+    normalisation, cumulative sum, exp and soft clamp to phi. Values outside [-B, B] pass x's gradient only.
+    """
+
+    @staticmethod
+    def forward(ctx: Any, phi: Tensor, x: Tensor, bound: float, limit: float) -> tuple[Tensor, Tensor]:
+        y, ladj, saved = _spline_forward(phi, x, bound, limit, keep=True)
+        ctx.save_for_backward(*saved)
+        ctx.bound, ctx.limit, ctx.phi_shape = bound, limit, phi.shape
+        return y, ladj
+
+    @staticmethod
+    def backward(ctx: Any, grad_y: Tensor, grad_ladj: Tensor) -> tuple[Tensor | None, ...]:
+        (expd, clamp_wh, cumulative, outside, k, z, w, h, s, d0, d1, clamp_d, den, numerator,
+         polynomial) = ctx.saved_tensors
+        bins = cumulative.shape[-1]
+        inside = (~outside).to(z.dtype)
+        gy = grad_y * inside
+        gl = grad_ladj[..., None] * inside
+        one_z = 1 - z
+        t = d0 + d1 - 2 * s
+        zz = z * one_z
+        slope = 1 - 2 * z
+        hy = gy * h / den                        # d loss / d numerator through y
+        gden = -hy * numerator / den + gl * (-2 / den)
+        gpoly = gl / polynomial
+        g_z = hy * (2 * s * z + d0 * slope) + gden * t * slope + gpoly * (2 * d1 * z + 2 * s * slope - 2 * d0 * one_z)
+        g_s = hy * z * z + gden * (1 - 2 * zz) + gpoly * 2 * zz + gl * (2 / s)
+        g_d0 = (hy + gden) * zz + gpoly * one_z * one_z
+        g_d1 = gden * zz + gpoly * z * z
+        g_h = gy * numerator / den + g_s / w
+        g_w = -(g_z * z + g_s * s) / w
+        grad_x = g_z / w + grad_y * (1 - inside) if ctx.needs_input_grad[1] else None
+        if not ctx.needs_input_grad[0]:
+            return None, grad_x, None, None
+        # The bin's corner (x0, y0) is knot k (-B, a constant, for k = 0), its far corner knot k + 1; widths and
+        # heights are differences of the two. Knot j of `cumulative` is knot j + 1 of the spline.
+        g_x0, g_y0 = -g_z / w - g_w, gy - g_h
+        positions = torch.arange(bins, device=k.device)
+        at_lower = (positions == (k - 1)[..., None]).to(z.dtype)                               # (..., D, K)
+        at_upper = (positions == k[..., None]).to(z.dtype)
+        g_knots = torch.stack((at_lower * g_x0[..., None] + at_upper * g_w[..., None],
+                               at_lower * g_y0[..., None] + at_upper * g_h[..., None]), dim=-2)  # (..., D, 2, K)
+        # knots = cumulative * 2B / cumulative[-1] - B, cumulative = cumsum(expd), expd = exp(soft clamp).
+        scale = (2 * ctx.bound) / cumulative[..., -1:]
+        g_cumulative = g_knots * scale
+        g_cumulative[..., -1:] -= (g_knots * cumulative).sum(-1, keepdim=True) * scale / cumulative[..., -1:]
+        g_expd = g_cumulative.sum(-1, keepdim=True) - g_cumulative.cumsum(-1) + g_cumulative
+        g_wh = g_expd.flatten(-2) * expd / (clamp_wh * clamp_wh)
+        # End derivatives: d0 is inner derivative k (raw index k - 1) for k >= 1, d1 inner derivative k + 1 (raw
+        # index k) for k <= K - 2; each passed through exp(soft clamp).
+        g_raw0 = torch.where(k >= 1, g_d0 * d0, 0.0) / (clamp_d[..., 0] * clamp_d[..., 0])
+        g_raw1 = torch.where(k <= bins - 2, g_d1 * d1, 0.0) / (clamp_d[..., 1] * clamp_d[..., 1])
+        inner = positions[:bins - 1]
+        g_raw = ((inner == (k - 1)[..., None]).to(z.dtype) * g_raw0[..., None]
+                 + (inner == k[..., None]).to(z.dtype) * g_raw1[..., None])
+        return torch.cat((g_wh, g_raw), dim=-1), grad_x, None, None
 
 
 class _SinglePassCouplingInverse(Transform):
