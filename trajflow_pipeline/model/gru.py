@@ -85,43 +85,33 @@ class _GRU(torch.autograd.Function):
             w_ih, w_hh = weights[4 * layer], weights[4 * layer + 1]
             layer_input, outputs, rz_all, n_all, gh_n_all = saved[5 * layer:5 * layer + 5]
             steps, size, hidden = n_all.shape
-            factors, z_all = _step_factors(rz_all, n_all, gh_n_all, outputs[:-1])
-            # Per step, the gradients of the pre-activations [n, r, z, gh_n] are grad_h times `factors`, and
-            # grad_h of the step before is grad_h z + the r, z and gh_n gradients through W_hh.
-            grad_pre = torch.empty_like(factors)                                               # (4, T, N, H)
-            w_r, w_z, w_n = w_hh.split(hidden)
+            grad_rz = torch.empty_like(rz_all)         # d loss / d pre-activations of r, z (in gi and in gh)
+            grad_pre_n = torch.empty_like(n_all)       # d loss / d (gi_n + r * gh_n)
+            grad_gh_n = torch.empty_like(n_all)        # d loss / d gh_n
+            w_hh_rz, w_hh_n = w_hh[:2 * hidden], w_hh[2 * hidden:]
             grad_h = grad_layer_output[steps - 1].clone()
             for step in reversed(range(steps)):
                 if step < steps - 1:
                     grad_h += grad_layer_output[step]
-                step_grads = torch.mul(factors[:, step], grad_h, out=grad_pre[:, step])
-                grad_h = (torch.addmm(grad_h * z_all[step], step_grads[1], w_r).addmm_(step_grads[2], w_z)
-                          .addmm_(step_grads[3], w_n))
-            g_n, g_r, g_z, g_gh_n = grad_pre.view(4, steps * size, hidden)
+                rz, n, previous = rz_all[step], n_all[step], outputs[step]
+                r, z = rz[:, :hidden], rz[:, hidden:]
+                # h = n + z (previous - n): dh/dn = 1 - z, dh/dz = previous - n, dh/dprevious = z
+                pre_n = torch.mul(grad_h - grad_h * z, 1 - n * n, out=grad_pre_n[step])
+                slope = rz - rz * rz                                                       # sigmoid'
+                torch.mul(pre_n * gh_n_all[step], slope[:, :hidden], out=grad_rz[step, :, :hidden])
+                torch.mul(grad_h * (previous - n), slope[:, hidden:], out=grad_rz[step, :, hidden:])
+                torch.mul(pre_n, r, out=grad_gh_n[step])
+                grad_h = torch.addmm(grad_h * z, grad_rz[step], w_hh_rz).addmm_(grad_gh_n[step], w_hh_n)
+            flat_rz, flat_n = grad_rz.view(steps * size, -1), grad_pre_n.view(steps * size, -1)
+            flat_gh_n = grad_gh_n.view(steps * size, -1)
             flat_input = layer_input.reshape(steps * size, -1)
             flat_previous = outputs[:-1].reshape(steps * size, -1)
-            grads[4 * layer] = torch.cat((g_r.t() @ flat_input, g_z.t() @ flat_input, g_n.t() @ flat_input))
-            grads[4 * layer + 1] = torch.cat((g_r.t() @ flat_previous, g_z.t() @ flat_previous,
-                                              g_gh_n.t() @ flat_previous))
-            sums = grad_pre.view(4, steps * size, hidden).sum(1)
-            grads[4 * layer + 2] = sums[(1, 2, 0), :].reshape(-1)
-            grads[4 * layer + 3] = sums[(1, 2, 3), :].reshape(-1)
+            grads[4 * layer] = torch.cat((flat_rz.t() @ flat_input, flat_n.t() @ flat_input))
+            grads[4 * layer + 1] = torch.cat((flat_rz.t() @ flat_previous, flat_gh_n.t() @ flat_previous))
+            grads[4 * layer + 2] = torch.cat((flat_rz.sum(0), flat_n.sum(0)))
+            grads[4 * layer + 3] = torch.cat((flat_rz.sum(0), flat_gh_n.sum(0)))
             if layer > 0 or ctx.needs_input_grad[1]:
-                i_r, i_z, i_n = w_ih.split(hidden)
-                grad_inputs = torch.addmm(torch.mm(g_r, i_r), g_z, i_z).addmm_(g_n, i_n).view(steps, size, -1)
+                grad_inputs = torch.addmm(flat_n @ w_ih[2 * hidden:], flat_rz, w_ih[:2 * hidden])
+                grad_inputs = grad_inputs.view(steps, size, -1)
             grad_layer_output = grad_inputs
         return None, (grad_inputs.transpose(0, 1) if ctx.needs_input_grad[1] else None), *grads
-
-
-def _step_factors(rz: Tensor, n: Tensor, gh_n: Tensor, previous: Tensor) -> tuple[Tensor, Tensor]:
-    """What turns d loss / d h_t into the gradients of step t's pre-activations, for all steps at once (4, T, N, H):
-    [n's pre-activation (gi_n + r gh_n), r's, z's, gh_n], and the update gate z (T, N, H).
-
-    With h = n + z (previous - n): dh/dn = 1 - z, tanh' = 1 - n^2, sigmoid' = s (1 - s), d pre_n / d r = gh_n,
-    d pre_n / d gh_n = r, dh/dz = previous - n."""
-    hidden = n.shape[-1]
-    r, z = rz[..., :hidden], rz[..., hidden:]
-    slope = rz - rz * rz
-    pre_n = (1 - z) * (1 - n * n)
-    return torch.stack((pre_n, pre_n * gh_n * slope[..., :hidden], (previous - n) * slope[..., hidden:],
-                        pre_n * r)), z
