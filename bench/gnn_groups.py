@@ -24,14 +24,15 @@ import torch
 
 from trajflow_pipeline.model import ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.config import RunConfig
-from release_compat import adamw, load_data
+from release_compat import adamw, load_data, with_fixed_targets
 
 
 def step_seconds(data, model, batches: int, repeats: int) -> float:
     """Best CPU seconds per flow-stage forward + backward over `repeats` rounds of the same batches (1 thread)."""
     torch.set_num_threads(1)
-    order = torch.randperm(len(data.train), generator=torch.Generator().manual_seed(0))
-    chosen = [data.train.index(order[i * 128:(i + 1) * 128]) for i in range(batches)]
+    train = with_fixed_targets(model, "flow", data.train)        # once per stage, as training does
+    order = torch.randperm(len(train), generator=torch.Generator().manual_seed(0))
+    chosen = [train.index(order[i * 128:(i + 1) * 128]) for i in range(batches)]
     model.stage_loss("flow", chosen[0]).backward()
     best = float("inf")
     for _ in range(repeats):
@@ -52,8 +53,9 @@ def epoch_seconds(data, model, threads: int) -> float:
     optimizer = adamw(params, 1e-4, 1e-5)
     order = torch.randperm(len(data.train), generator=torch.Generator().manual_seed(1))
     start = time.perf_counter()
+    train = with_fixed_targets(model, "flow", data.train)        # paid once per stage: counted in the epoch
     for first in range(0, len(order), 128):
-        loss = model.stage_loss("flow", data.train.index(order[first:first + 128]))
+        loss = model.stage_loss("flow", train.index(order[first:first + 128]))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

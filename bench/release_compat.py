@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import trajflow_pipeline
@@ -16,4 +17,14 @@ else:  # releases before the training package
     from trajflow_pipeline.stages.train import _finite_gradients as finite_gradients  # type: ignore[no-redef]
     from trajflow_pipeline.stages.train import _load_data as load_data  # type: ignore[no-redef]
 
-__all__ = ["adamw", "finite_gradients", "load_data"]
+
+
+def with_fixed_targets(model, stage: str, batch):  # type: ignore[no-untyped-def]
+    """`batch` carrying what `stage` fits where training computes it once per stage (as the training loop does);
+    unchanged for releases without ``fixed_targets`` or where the stage has none."""
+    fixed = getattr(model, "fixed_targets", None)
+    targets = None if fixed is None else fixed(stage, batch)
+    return batch if targets is None else replace(batch, targets=targets)
+
+
+__all__ = ["adamw", "finite_gradients", "load_data", "with_fixed_targets"]

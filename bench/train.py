@@ -29,7 +29,7 @@ import torch
 
 from trajflow_pipeline.model import DataSpec, ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.toy import crowd_batch
-from release_compat import adamw, finite_gradients
+from release_compat import adamw, finite_gradients, with_fixed_targets
 
 SPEC = DataSpec(n_past=8, n_future=12, dataset="bench", dt=0.4)
 
@@ -62,7 +62,7 @@ def training_rate(name: str, stage: str, neighbours: int, device: torch.device, 
     for p in model.parameters():
         p.requires_grad_(id(p) in keep)
     optimizer = adamw(params, 1e-4, 1e-5)
-    batch = crowd_batch(128, neighbours=neighbours, seed=1).to(device)
+    batch = with_fixed_targets(model, stage, crowd_batch(128, neighbours=neighbours, seed=1).to(device))
 
     def step() -> None:
         loss = model.stage_loss(stage, batch)

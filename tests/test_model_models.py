@@ -318,3 +318,26 @@ def test_flow_standardize_adds_a_closed_form_stage(name: str) -> None:
     gaussian = torch.distributions.Normal(targets.mean(0), targets.std(0))
     expected = -gaussian.log_prob(targets).sum(-1).mean()
     assert torch.allclose(model.stage_loss("standardize", batch), expected, atol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])
+def test_fixed_targets_are_what_each_step_would_compute(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Training computes TrajFlow's frozen-autoencoder latents once per flow stage (in chunks); a batch carrying
+    them gives the loss and gradients the step computes itself. The other families have none (FloMo's targets
+    are noisy and rescaled at every step)."""
+    model = _model(name).train()
+    batch = crowd_batch(37, neighbours=5)
+    monkeypatch.setattr(type(model), "TARGET_CHUNK", 16, raising=False)
+    fixed = model.fixed_targets("flow", batch)
+    if name != "trajflow":
+        assert fixed is None
+        return
+    assert model.fixed_targets("autoencoder", batch) is None
+    carried = replace(batch, targets=fixed)
+    torch.manual_seed(1)
+    own = model.stage_loss("flow", batch.index(slice(3, 20)))
+    torch.manual_seed(1)
+    cached = model.stage_loss("flow", carried.index(slice(3, 20)))
+    assert torch.allclose(cached, own, rtol=1e-6)
+    assert carried.index(slice(3, 20)).targets.shape == (17, model.config.latent_dim)
+    assert carried.without_future().targets is None

@@ -33,6 +33,8 @@ class SceneBatch:
     map_crop:         (B, 1, H, W) a heading-aligned grey-scale crop around the target (156 x 257 by default):
                       uint8 grey levels as the loader stores them (the map CNN divides by 255 on the device) or
                       float32 in [0, 1]; None when the dataset has no map.
+    targets:          (B, D) the flow's target vector of each problem where training computed it once for a
+                      stage in which it cannot change (``TrajectoryModel.fixed_targets``), else None.
     """
 
     past: Tensor
@@ -43,6 +45,7 @@ class SceneBatch:
     neighbours_type: Tensor
     future: Tensor | None = None
     map_crop: Tensor | None = None
+    targets: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.past.shape[0])
@@ -66,7 +69,7 @@ class SceneBatch:
 
     def without_future(self) -> "SceneBatch":
         """The same inputs with the ground truth removed, as a model sees them at inference."""
-        return replace(self, future=None)
+        return replace(self, future=None, targets=None)
 
 
 def _move(value: Tensor | None, device: torch.device | str) -> Tensor | None:

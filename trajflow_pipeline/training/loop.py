@@ -154,6 +154,7 @@ class Session(RunRecords):
         """Train gradient stage `stage` on from `progress`, one epoch at a time, until its epoch limit or early
         stopping ends it; every epoch is logged and checkpointed. The stage keeps its best weights."""
         fit = self._prepare(index, stage, progress, len(train_batch), len(val_batch))
+        train_batch, val_batch = (self._with_fixed_targets(stage, b) for b in (train_batch, val_batch))
         epoch_task = bars.add_task(f"{stage}", total=fit.schedule.max_epochs, completed=progress.epoch, status="")
         batch_task = bars.add_task("  batches", total=fit.n_batches, status="")
         stop = fit.done(progress)
@@ -186,6 +187,13 @@ class Session(RunRecords):
                 _epoch_hook(stage, epoch)
         bars.remove_task(batch_task)
         self._end_stage(fit, progress)
+
+    def _with_fixed_targets(self, stage: str, batch: SceneBatch) -> SceneBatch:
+        """`batch` with what `stage` fits computed once, where it cannot change while the stage trains (TrajFlow's
+        frozen-autoencoder latents in the flow stage): the same values the steps would compute, at no cost per
+        step."""
+        targets = self.model.fixed_targets(stage, batch)
+        return batch if targets is None else replace(batch, targets=targets)
 
     def _prepare(self, index: int, stage: str, progress: StageProgress, n_train: int, n_val: int) -> _GradientStage:
         """The stage's settings, its parameters (the only ones left trainable), their optimizer and learning-rate
