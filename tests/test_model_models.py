@@ -341,3 +341,33 @@ def test_fixed_targets_are_what_each_step_would_compute(name: str, monkeypatch: 
     assert torch.allclose(cached, own, rtol=1e-6)
     assert carried.index(slice(3, 20)).targets.shape == (17, model.config.latent_dim)
     assert carried.without_future().targets is None
+
+
+@pytest.mark.parametrize("aggregate", ["sum", "mean"])
+def test_packed_groups_give_the_one_group_readout(aggregate: str) -> None:
+    """The CPU path (nodes of all groups packed in one tensor, edges per group) reads out what the dense and
+    the sparse rounds over the whole batch read out, gradients included (float64)."""
+    torch.manual_seed(0)
+    gnn = SocialGNN(aggregate=aggregate).double()
+    batch, n = 11, 7
+    mask = torch.rand(batch, n) < torch.linspace(0.1, 0.9, batch)[:, None]
+    mask[:, 0] = True
+    onehot = torch.nn.functional.one_hot(torch.randint(0, 5, (batch, n)), 5).double()
+    x0, pos0 = torch.randn(batch, n, 32, dtype=torch.float64), 3 * torch.randn(batch, n, 2, dtype=torch.float64)
+    extent = (mask * torch.arange(1, n + 1)).amax(dim=1)
+    order = torch.argsort(extent, stable=True)
+    ends = extent[order].tolist()
+    shapes = [(stop - start, max(1, ends[stop - 1])) for start, stop in size_groups(ends, 3 * n * n, 3 * n * n)]
+    assert len(shapes) > 2
+    results = []
+    for readout in (lambda *a: gnn._grouped_rounds(*a, order, shapes), lambda *a: gnn._readout(*a, True),
+                    lambda *a: gnn._readout(*a, False)):
+        x, pos = x0.clone().requires_grad_(True), pos0.clone().requires_grad_(True)
+        gnn.zero_grad()
+        out = readout(x, pos, onehot, mask)
+        (out ** 2).sum().backward()
+        results.append((out.detach(), x.grad[mask], pos.grad[mask], gnn.msg_edge.weight.grad.clone(),
+                        gnn.update[0][0].weight.grad.clone()))
+    for result in results[1:]:
+        for value, expected in zip(result, results[0]):
+            assert torch.allclose(value, expected, rtol=1e-9, atol=1e-10)

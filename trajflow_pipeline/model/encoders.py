@@ -83,12 +83,12 @@ class SocialGNN(nn.Module):
     def forward(self, nodes_past: Tensor, nodes_valid: Tensor, nodes_mask: Tensor, nodes_type: Tensor) -> Tensor:
         """Node pasts (B, n, P, 2) in the target frame, step validity (B, n, P), node mask (B, n), classes (B, n).
 
-        Returns the graph encoding (B, width). Only real nodes' pasts are encoded. The problems are ordered by how
-        far their real nodes extend and, on a CPU, the rounds run on groups of similar size in that order
-        (:func:`size_groups`), each cut to its own extent: a batch mixing crowded and empty scenes then costs
-        about sum(n_i^2) edges, not B * max(n_i)^2. Within a group, messages are computed on the padded (g, n, n)
-        layout when padding wastes little (contiguous, fast), else only for the edges between real nodes. All
-        give the same result.
+        Returns the graph encoding (B, width). Only real nodes' pasts are encoded. On a CPU the problems are
+        ordered by how far their real nodes extend and their edges are computed on groups of similar size in that
+        order (:func:`size_groups`), each on its own padded (g, k, k) layout (:meth:`_grouped_rounds`): a batch
+        mixing crowded and empty scenes then costs about sum(n_i^2) edges, not B * max(n_i)^2, in tensors near
+        the cache. Other devices take the batch as one group, on the padded layout when padding wastes little,
+        else on the edges between real nodes only. All give the same result.
         """
         batch, n = nodes_mask.shape
         flat_mask = nodes_mask.reshape(-1)
