@@ -133,6 +133,9 @@ def test_single_future_group_and_short_future(tmp_path: Path) -> None:
     result = runner.invoke(cli, ["forking-paths", str(release.root), "-o", str(tmp_path / "out"), "--folds", "2"])
     assert result.exit_code == 0, result.output
     assert "skipped 2 annotated future(s)" in result.output
+    quiet = runner.invoke(cli, ["forking-paths", str(release.root), "-o", str(tmp_path / "quiet"), "--folds", "2",
+                                "--quiet"])
+    assert quiet.exit_code == 0 and "warning: skipped 2 annotated future(s)" in quiet.output   # even under --quiet
     ds = open_dataset(tmp_path / "out")
     samples = ds.samples()
     assert samples.get_column("moment").to_list() == ["hotel_1_5", "hotel_2_6", "hotel_2_6"]

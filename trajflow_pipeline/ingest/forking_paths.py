@@ -539,7 +539,7 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
                   for sid, fold in samples.select("scene_id", "fold").iter_rows()]
     scenes_table = pl.DataFrame(scene_rows, schema_overrides={"fold": pl.String})
     single = samples.group_by("group_id").len().filter(pl.col("len") == 1).height
-    if skipped and not quiet:
+    if skipped:
         warn(f"skipped {len(skipped)} annotated future(s) without {N_PAST} + {N_FUTURE} steps around the fork "
              "(listed in dataset.json, lineage.skipped)")
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
