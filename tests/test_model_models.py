@@ -371,3 +371,20 @@ def test_packed_groups_give_the_one_group_readout(aggregate: str) -> None:
     for result in results[1:]:
         for value, expected in zip(result, results[0]):
             assert torch.allclose(value, expected, rtol=1e-9, atol=1e-10)
+
+
+def test_each_component_starts_from_its_own_random_stream() -> None:
+    """Changing one component's size leaves every other component's initial weights as they were; the global
+    seed still decides the model (issue 28: ablations compare what they say they compare)."""
+    def weights(seed: int, **kwargs: object) -> dict[str, torch.Tensor]:
+        torch.manual_seed(seed)
+        return build_model(ModelConfig(name="trajflow", **kwargs), SPEC).state_dict()
+
+    base, wider_flow, other_ae = weights(0), weights(0, flow_hidden=[48] * 5), weights(0, ae_embed=24)
+    for name, value in base.items():
+        if not name.startswith("flow."):
+            assert torch.equal(value, wider_flow[name]), name
+        if not name.startswith("autoencoder."):
+            assert torch.equal(value, other_ae[name]), name
+    assert not torch.equal(base["context.past.embed.weight"], weights(1)["context.past.embed.weight"])
+    assert all(torch.equal(value, weights(0)[name]) for name, value in base.items())

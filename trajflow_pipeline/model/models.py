@@ -29,7 +29,10 @@ Common interface (:class:`TrajectoryModel`):
 from __future__ import annotations
 
 import abc
+import contextlib
+import hashlib
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from typing import ClassVar, NamedTuple
 
@@ -82,6 +85,9 @@ class TrajectoryModel(nn.Module, abc.ABC):
         super().__init__()
         self.config = config
         self.spec = spec
+        # One draw of torch's global generator; each component's initial weights come from its own stream
+        # seeded by it and the component's name (component_stream).
+        self.init_seed = int(torch.randint(0, 2 ** 62, (1,)))
 
     @classmethod
     def stages_for(cls, config: ModelConfig) -> tuple[str, ...]:
@@ -133,6 +139,20 @@ class TrajectoryModel(nn.Module, abc.ABC):
             raise ValueError("this loss needs the ground-truth future (batch.future is None)")
 
 
+@contextlib.contextmanager
+def component_stream(model: TrajectoryModel, component: str) -> Iterator[None]:
+    """Initialise `component` from its own random stream: torch's global generator seeded from the model's
+    ``init_seed`` and the component's name, and restored afterwards.
+
+    So a component's initial weights depend on the training seed and its own shape only: changing the size of
+    one (a wider flow, another autoencoder) leaves the others' starting points as they were, and an ablation
+    compares what it says it compares."""
+    digest = hashlib.sha256(f"{model.init_seed}:{component}".encode()).digest()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int.from_bytes(digest[:8], "little") % 2 ** 63)
+        yield
+
+
 def _check_steps(steps: int | None, default: int) -> int:
     steps = default if steps is None else int(steps)
     if steps < 1:
@@ -162,19 +182,23 @@ class FlowModel(TrajectoryModel):
 
     def __init__(self, config: ModelConfig, spec: DataSpec, features: int, seed: int = 0) -> None:
         super().__init__(config, spec)
-        past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
+        with component_stream(self, "past"):
+            past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
         social = None
         if config.use_social:
-            node_past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
-            social = SocialGNN(config.gnn_width, config.gnn_layers, node_past, aggregate=config.gnn_aggregate)
+            with component_stream(self, "social"):
+                node_past = PastEncoder(config.past_embed, config.past_hidden, config.past_layers, config.past_out)
+                social = SocialGNN(config.gnn_width, config.gnn_layers, node_past, aggregate=config.gnn_aggregate)
         map_encoder = None
         if config.use_map and spec.has_map:
-            map_encoder = MapEncoder(config.map_height, config.map_width, config.map_out)
+            with component_stream(self, "map"):
+                map_encoder = MapEncoder(config.map_height, config.map_width, config.map_out)
         self.context = ContextEncoder(past=past, social=social, map_encoder=map_encoder)
-        self.flow = ConditionalSplineFlow(features, self.context.out_features, layers=config.flow_layers,
-                                          bins=config.flow_bins, tail_bound=config.flow_tail_bound,
-                                          hidden=tuple(config.flow_hidden), seed=seed,
-                                          standardize=config.flow_standardize)
+        with component_stream(self, "flow"):
+            self.flow = ConditionalSplineFlow(features, self.context.out_features, layers=config.flow_layers,
+                                              bins=config.flow_bins, tail_bound=config.flow_tail_bound,
+                                              hidden=tuple(config.flow_hidden), seed=seed,
+                                              standardize=config.flow_standardize)
         if config.flow_standardize:
             self.stages = self.stages_for(config)
             self.closed_form_stages = (*self.closed_form_stages, self.STANDARDIZE)
@@ -271,8 +295,9 @@ class TrajFlow(FlowModel):
 
     def __init__(self, config: ModelConfig, spec: DataSpec, seed: int = 0) -> None:
         super().__init__(config, spec, config.latent_dim, seed)
-        self.autoencoder = TrajectoryAutoencoder(config.ae_embed, config.ae_hidden, config.ae_layers,
-                                                 config.latent_dim)
+        with component_stream(self, "autoencoder"):
+            self.autoencoder = TrajectoryAutoencoder(config.ae_embed, config.ae_hidden, config.ae_layers,
+                                                     config.latent_dim)
 
     def stage_parameters(self, stage: str) -> list[nn.Parameter]:
         if stage == "autoencoder":
