@@ -386,6 +386,7 @@ def _work_in_pool(config: ExperimentConfig, data: Path, out: Path, pool: Executo
                     say((f"{index}/{len(plan)} {name}: done", "green"))
                 _write_index(out, config, data, plan)
     if failed:
+        _write_index(out, config, data, plan)
         raise TrajflowError(f"{len(failed)} of {len(jobs)} run(s) failed: {'; '.join(failed)}. Finished runs are "
                             "kept; running the same command again resumes the rest")
 
