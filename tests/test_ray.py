@@ -27,8 +27,9 @@ from safetensors.torch import load_file  # noqa: E402
 from test_eval_stage import write_tiny_experiment  # noqa: E402
 
 from trajflow_pipeline.errors import DataError, TrajflowError  # noqa: E402
-from trajflow_pipeline.stages.evaluate import evaluate  # noqa: E402
+from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate  # noqa: E402
 from trajflow_pipeline.stages.experiment import run_experiment  # noqa: E402
+from trajflow_pipeline.stages.experiment_config import load_experiment  # noqa: E402
 from trajflow_pipeline.util.scheduler import RayPool  # noqa: E402
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="run claims need POSIX file locks")
@@ -97,9 +98,8 @@ def test_an_experiment_on_ray_ends_with_the_metrics_of_the_local_path(tmp_path: 
     assert_frame_equal(pl.read_parquet(run / "eval" / "metrics.parquet"), before)
 
 
-def load_options(config: Path):  # noqa: ANN201 - EvalOptions
-    from trajflow_pipeline.stages.experiment_config import load_experiment
-
+def load_options(config: Path) -> EvalOptions:
+    """The evaluation options of an experiment config."""
     return load_experiment(config).eval_options
 
 

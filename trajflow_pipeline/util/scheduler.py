@@ -118,9 +118,9 @@ def connect_ray(address: str) -> Any:
         ray.init(address=None if address == RAY_LOCAL else address, include_dashboard=False,
                  logging_level=logging.WARNING, log_to_driver=True)
     except (ConnectionError, ValueError, RuntimeError) as error:
-        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise TrajflowError(f"--ray {address}: cannot connect to a Ray cluster ({first}); start one with "
-                            f"`ray start --head`, or use --ray {RAY_LOCAL} for a Ray instance on this machine") from None
+        raise TrajflowError(f"--ray {address}: cannot connect to a Ray cluster ({one_line(error)}); start one with "
+                            f"`ray start --head`, or use --ray {RAY_LOCAL} for a Ray instance on this "
+                            "machine") from None
     return ray
 
 
