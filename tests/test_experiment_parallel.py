@@ -131,7 +131,7 @@ def test_a_worker_ends_with_the_experiment_process_even_when_that_is_killed(tmp_
     script = tmp_path / "parent.py"
     script.write_text(
         "import multiprocessing, time\n"
-        "from trajflow_pipeline.stages.experiment import _exit_with_parent\n"
+        "from trajflow_pipeline.util.scheduler import exit_with_parent as _exit_with_parent\n"
         "def worker():\n    _exit_with_parent()\n    time.sleep(120)\n"
         "if __name__ == '__main__':\n"
         "    child = multiprocessing.get_context('spawn').Process(target=worker)\n"

@@ -40,6 +40,11 @@ def eval_command(
         help="How ROME's densities are computed: exact, or reference (romepy's arithmetic through scikit-learn, "
              "to the bit, rounding residue included: docs/rome.md; needs the reference extra).")] = "exact",
     device: Annotated[str, typer.Option(help="auto, cpu, cuda or cuda:N.")] = "auto",
+    ray: Annotated[Optional[str], typer.Option(
+        "--ray", metavar="ADDRESS", help=(
+            "Spread the ROME fits over a Ray cluster: auto (the one `ray start` runs here), HOST:PORT or "
+            "ray://HOST:PORT, or local (a Ray instance on this machine); needs the ray extra. Same numbers; "
+            "--workers is then not used."))] = None,
     force: Annotated[bool, typer.Option(help="Evaluate even on data other than the run was trained on.")] = False,
     quiet: Quiet = False,
 ) -> None:
@@ -52,7 +57,7 @@ def eval_command(
         options = EvalOptions(samples=samples, k=min(20, samples) if k is None else k, workers=workers, seed=seed,
                               steps=steps, max_pooled=max_pooled, metrics=tuple(metric) if metric else METRIC_NAMES,
                               extended_horizon=extended_horizon, rome_kde=rome_kde)
-        out = evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet)
+        out = evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet, ray=ray)
     if not quiet:
         print_metric_means(f"{run}: test metrics (mean)", aggregate_metrics(out))
         say(f"wrote {out}", out=stdout)

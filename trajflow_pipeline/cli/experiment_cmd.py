@@ -24,13 +24,22 @@ def experiment_command(
             "Work only on the runs whose names (MODEL-FOLD-sSEED) match; shell patterns, repeatable, e.g. "
             "--only flomo-zara2-s0 or --only 'trajflow-*'. To have one run done now beside a process that works "
             "through the plan, or to split an experiment between machines."))] = None,
+    ray: Annotated[Optional[str], typer.Option(
+        "--ray", metavar="ADDRESS", help=(
+            "Run each run as a task on a Ray cluster: auto (the one `ray start` runs here), HOST:PORT or "
+            "ray://HOST:PORT, or local (a Ray instance on this machine); needs the ray extra, and OUT on a file "
+            "system every node shares. Instead of --jobs."))] = None,
+    cpus_per_run: Annotated[int, typer.Option(
+        "--cpus-per-run", min=1, help="With --ray: CPUs each run asks for (its torch threads and ROME workers).")
+    ] = 1,
     quiet: Quiet = False,
 ) -> None:
     """Train and evaluate every model x fold x seed of a protocol; resumable, metrics collected in OUT."""
     from ..stages.experiment import experiment_complete, run_experiment
 
     with user_errors(ctx):
-        result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs, only=only or ())
+        result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs, only=only or (), ray=ray,
+                                cpus_per_run=cpus_per_run)
         done = experiment_complete(result)
     if not quiet and done:
         say(f"experiment done: {result} (make a report with `trajflow report {result} -o REPORT`)", out=stdout)

@@ -78,7 +78,8 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
                     horizon: np.ndarray | None = None, metrics: Sequence[str] = METRIC_NAMES,
                     pool_groups: bool = True, max_pooled: int | None = None, workers: int | None = None,
                     quiet: bool = False, seed: int = 0, fallbacks: RomeTally | None = None,
-                    rome_cache: Path | None = None, rome_kde: str = KDE_EXACT) -> pl.DataFrame:
+                    rome_cache: Path | None = None, rome_kde: str = KDE_EXACT,
+                    ray: str | None = None) -> pl.DataFrame:
     """Evaluate `pred` (A, S, T, 2) against `gt` (A, T, 2) (metres) and return the long table described above.
 
     joint_key  (A,) int: agents predicted together (same scene and t0) — joint metrics; None: each agent alone
@@ -96,6 +97,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     fallbacks  tally of the ROME fits that needed ROME's PCA fallback (see `metrics.parallel`).
     rome_cache directory keeping finished ROME fits, so that an interrupted evaluation resumes (`metrics.rome_cache`).
     rome_kde   how ROME's densities are computed: "exact" (default) or "reference" (romepy's arithmetic; docs/rome.md).
+    ray        a Ray address: the ROME fits run on that cluster (`metrics.parallel`); numbers do not depend on it.
     """
     wanted = check_metric_names(metrics)
     n_steps = np.shape(pred)[2] if np.ndim(pred) == 4 else 0
@@ -124,7 +126,7 @@ def compute_metrics(pred: np.ndarray, gt: np.ndarray, *, joint_key: np.ndarray |
     if density_wanted:
         res = density_metrics(pred, gt, metrics=density_wanted, joint_key=joint_key, group_id=group_id,
                               horizon=steps, pool_groups=pool_groups, max_pooled=max_pooled, workers=workers,
-                              quiet=quiet, seed=seed, fallbacks=fallbacks, cache=rome_cache, kde=rome_kde)
+                              quiet=quiet, seed=seed, fallbacks=fallbacks, cache=rome_cache, kde=rome_kde, ray=ray)
         if res.nll is not None:
             frames.append(metric_rows("nll", res.nll, agents, None))
         if res.nll_joint is not None and res.nll_joint_keys is not None:

@@ -312,7 +312,7 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
                     group_id: np.ndarray | None = None, pool_groups: bool = True, max_pooled: int | None = None,
                     t_eval: int | None = None, horizon: np.ndarray | None = None, workers: int | None = None,
                     quiet: bool = False, seed: int = 0, fallbacks: RomeTally | None = None,
-                    cache: Path | None = None, kde: str = KDE_EXACT) -> DensityResults:
+                    cache: Path | None = None, kde: str = KDE_EXACT, ray: str | None = None) -> DensityResults:
     """Compute any of {"nll", "nll_joint", "jsd"} with one shared pool of ROME fits.
 
     Fits needed by several metrics are made once (the pooled predicted density serves NLL and JSD; a
@@ -320,7 +320,8 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
     (see the module docstring). `seed` only drives the subsampling / chunking of large pooled sets and the
     per-task RNG seeds; results do not depend on `workers`. `fallbacks` tallies the fits that needed ROME's
     PCA fallback; `cache` keeps finished fits on disk so that an interrupted call resumes (see `run_rome_tasks`);
-    `kde` is how the densities are computed (`rome.KDE_CHOICES`; docs/rome.md).
+    `kde` is how the densities are computed (`rome.KDE_CHOICES`; docs/rome.md); with `ray` (a Ray address) the
+    fits run on that cluster, with the same results.
     """
     _check_options(metrics, max_pooled, seed)
     if kde not in KDE_CHOICES:
@@ -335,7 +336,7 @@ def density_metrics(pred: np.ndarray, gt: np.ndarray, *, metrics: set[str], join
                    pooled=pool_groups and group_id is not None, max_pooled=max_pooled, seed=seed, kde=kde)
 
     results = run_rome_tasks([task for part in parts for task in part.plan.tasks], workers=workers, quiet=quiet,
-                             base_seed=seed, fallbacks=fallbacks, cache=cache)
+                             base_seed=seed, fallbacks=fallbacks, cache=cache, ray=ray)
 
     assembled = [_assemble(part, results[part.offset:part.offset + len(part.plan.tasks)]) for part in parts]
     return _merge(parts, assembled, set(metrics), n_agents)

@@ -12,19 +12,20 @@ ROME re-runs a cluster's PCA with added jitter when it fails (a singular covaria
 :func:`run_rome_tasks` says once how many needed the fallback (and adds them to a :class:`RomeTally` when given
 one, which is how `trajflow eval` records them in eval.json even when quiet).
 
-Workers are never forked from the calling process: the eval stage has used torch's thread pools before the
-metrics run, and forking a process with live OpenMP threads can deadlock the child. They come from a
-'forkserver' (a fresh, single-threaded interpreter that has imported the estimator once and then forks each
-worker cheaply; it lives as long as the calling process, so later pools start at once), or from 'spawn' where
-forkserver does not exist (Windows). Worker functions are top level, so both start methods can import them.
+Batches run in a pool of :mod:`trajflow_pipeline.util.scheduler` (the one the experiment runner uses for its
+runs): local worker processes, never forked from the calling process (the eval stage has used torch's thread pools
+before the metrics run, and forking a process with live OpenMP threads can deadlock the child), from a
+'forkserver' that has imported the estimator once (it lives as long as the calling process, so later pools start
+at once), or 'spawn' where forkserver does not exist (Windows); or, with `ray`, tasks on a Ray cluster, one batch
+each, spread over the cluster's CPUs. The numbers are the same either way. Worker functions are top level, so
+every backend can import them.
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from trajflow_pipeline.metrics import rome
 from trajflow_pipeline.metrics.rome import DEFAULT_MIN_STD, KDE_CHOICES, KDE_EXACT
 from trajflow_pipeline.metrics.rome_cache import Finished, RomeCache
 from trajflow_pipeline.util.progress import make_progress, say
+from trajflow_pipeline.util.scheduler import LocalPool, RayPool, Resources
 
 #: most points x points x fits clustered in one batch (bounds a batch's working memory to a few hundred MB)
 BATCH_BUDGET = 1 << 21
@@ -193,16 +195,9 @@ def _run_batch(batch: list[tuple[int, RomeTask]]) -> list[tuple[int, tuple[tuple
 
 
 #: Modules the forkserver imports once, so that forked workers start with the estimator ready.
-_PRELOAD = ["trajflow_pipeline.metrics.parallel", "threadpoolctl"]
-
-
-def _pool_context() -> multiprocessing.context.BaseContext:
-    """'forkserver' with ROME preloaded where available, else 'spawn' (never plain 'fork'; see module doc)."""
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload(_PRELOAD)
-        return context
-    return multiprocessing.get_context("spawn")
+_PRELOAD = ("trajflow_pipeline.metrics.parallel", "threadpoolctl")
+#: times Ray runs a batch again whose worker died (a batch is pure: running it again gives the same numbers)
+RAY_RETRIES = 3
 
 
 def _saved(store: RomeCache | None, finished: list[Finished], quiet: bool) -> RomeCache | None:
@@ -238,11 +233,14 @@ def _batches(tasks: Sequence[RomeTask], todo: list[int], workers: int) -> list[l
 
 def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, quiet: bool = False,
                    description: str = "ROME density fits", base_seed: int = 0,
-                   fallbacks: RomeTally | None = None, cache: Path | None = None) -> list[tuple[np.ndarray, ...]]:
+                   fallbacks: RomeTally | None = None, cache: Path | None = None,
+                   ray: str | None = None) -> list[tuple[np.ndarray, ...]]:
     """Run independent ROME tasks and return, in task order, each task's tuple of log-density arrays.
 
     `workers` processes (default: all cores; 1 runs in this process, as does a single task) share the
-    tasks in batches of one fit shape; the numbers are identical for any `workers` and any batching.
+    tasks in batches of one fit shape; the numbers are identical for any `workers` and any batching. With `ray`
+    (a Ray address, `util.scheduler.connect_ray`), the batches are Ray tasks of one CPU each instead, as many
+    as the cluster has CPUs at once (`workers` is then not used).
     `base_seed` names the task list in a cache (the estimator itself draws no random numbers).
     A rich progress bar counts finished fits unless `quiet`, and a note says how many fits needed ROME's PCA
     fallback (see the module docstring) when any did; `fallbacks`, when given, adds this call's counts to it.
@@ -250,6 +248,9 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     those not saved yet (see :mod:`trajflow_pipeline.metrics.rome_cache`); the numbers are the same either way.
     """
     n_workers = resolve_workers(workers)
+    ray_pool = RayPool(ray, Resources(cpus=1), retries=RAY_RETRIES) if ray is not None and tasks else None
+    if ray_pool is not None:
+        n_workers = ray_pool.capacity
     n_tasks = len(tasks)
     results: list[tuple[np.ndarray, ...] | None] = [None] * n_tasks
     retries = np.zeros(n_tasks, dtype=np.int64)
@@ -266,7 +267,7 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
     progress = make_progress(quiet)
     with progress:
         bar = progress.add_task(description, total=n_tasks, completed=resumed)
-        if n_workers == 1 or len(batches) <= 1:
+        if ray_pool is None and (n_workers == 1 or len(batches) <= 1):
             for batch in batches:
                 done = _run_batch([(i, tasks[i]) for i in batch])
                 for index, (values, retried) in done:
@@ -274,7 +275,7 @@ def run_rome_tasks(tasks: Sequence[RomeTask], *, workers: int | None = None, qui
                 store = _saved(store, done, quiet)
                 progress.advance(bar, len(done))
         else:
-            with ProcessPoolExecutor(max_workers=min(n_workers, len(batches)), mp_context=_pool_context()) as pool:
+            with ray_pool or LocalPool(min(n_workers, len(batches)), preload=_PRELOAD) as pool:
                 futures = [pool.submit(_run_batch, [(i, tasks[i]) for i in batch]) for batch in batches]
                 unsaved = set(futures)
                 try:

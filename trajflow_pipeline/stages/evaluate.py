@@ -9,7 +9,7 @@ Writes, atomically, ``RUN/eval/``:
                               sample_id, aggregate (True on the one mean row per metric, as the paper averages;
                               the other rows are per agent, or per joint group / identical-input group);
 * ``eval.json``            — what produced the numbers: run, model, dataset, fold, seed, draws, K, metrics, workers,
-                              ``rome_kde`` (how ROME's densities were computed; docs/rome.md),
+                              ``ray`` (the Ray address the ROME fits ran on, or null), ``rome_kde`` (how ROME's densities were computed; docs/rome.md),
                               seconds, date, trajflow version and code revisions (``code_revision`` of the
                               evaluation, ``training_code_revisions`` from run.json), the machines (``machine``
                               that evaluated, ``training_machines``), data fingerprint, the run's resolved config,
@@ -248,18 +248,20 @@ def ground_truth_table(problems: Problems) -> pl.DataFrame:
 
 def metrics_table(run: RunInfo, problems: Problems, trajectories: np.ndarray, options: EvalOptions, *,
                   quiet: bool, horizon: Horizon | None = None, fallbacks: RomeTally | None = None,
-                  fallbacks_ext: RomeTally | None = None, rome_cache: Path | None = None) -> pl.DataFrame:
+                  fallbacks_ext: RomeTally | None = None, rome_cache: Path | None = None,
+                  ray: str | None = None) -> pl.DataFrame:
     """The long metrics table of one run: the standard metrics over `horizon.evaluated` steps (default: the
     ground truth's n_future, or fewer when fewer were predicted) and, for an extended horizon, the same metrics
     with suffix _ext over each problem's own ground-truth horizon. `fallbacks` and `fallbacks_ext` tally the ROME
     fits that needed ROME's PCA fallback for the standard and the _ext metrics; `rome_cache` keeps finished fits
-    on disk so that an interrupted evaluation resumes."""
+    on disk so that an interrupted evaluation resumes; with `ray` (a Ray address) the ROME fits run on that
+    cluster, with the same numbers."""
     assert problems.batch.future is not None
     gt = problems.batch.future.double().numpy()
     steps = min(gt.shape[1], trajectories.shape[2]) if horizon is None else horizon.evaluated
     common = dict(joint_key=problems.joint_id, group_id=problems.group_id, k=options.k, metrics=options.metrics,
                   workers=options.workers, quiet=quiet, seed=options.seed, max_pooled=options.max_pooled,
-                  fallbacks=fallbacks, rome_cache=rome_cache, rome_kde=options.rome_kde)
+                  fallbacks=fallbacks, rome_cache=rome_cache, rome_kde=options.rome_kde, ray=ray)
     table = compute_metrics(trajectories[:, :, :steps], gt[:, :steps], **common)
     if horizon is not None and horizon.extended:
         extended = extended_metrics(problems, trajectories, table, dict(common, fallbacks=fallbacks_ext))
@@ -295,8 +297,9 @@ def _check_weights_digest(run: RunInfo, model: TrajectoryModel, force: bool) -> 
 
 
 def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: EvalOptions | None = None,
-             device: str = "auto", force: bool = False, quiet: bool = False) -> Path:
-    """Evaluate the run in `run_dir` on the test split of its fold; returns the eval directory."""
+             device: str = "auto", force: bool = False, quiet: bool = False, ray: str | None = None) -> Path:
+    """Evaluate the run in `run_dir` on the test split of its fold; returns the eval directory. With `ray` (a Ray
+    address, or 'local') the ROME fits are spread over that cluster in batches; the numbers are the same."""
     options = options or EvalOptions()
     options.validate()
     started = time.perf_counter()
@@ -307,11 +310,11 @@ def evaluate(run_dir: str | Path, *, data: str | Path | None = None, options: Ev
             raise UsageError(f"{run.path}: another process is evaluating this run (it holds {EVAL_LOCK}); "
                              "wait for it to finish")
         return _evaluate(run, data=data, options=options, device=device, force=force, quiet=quiet,
-                         started=started, revision=revision)
+                         started=started, revision=revision, ray=ray)
 
 
 def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, device: str, force: bool,
-              quiet: bool, started: float, revision: str | None) -> Path:
+              quiet: bool, started: float, revision: str | None, ray: str | None = None) -> Path:
     """The evaluation of an opened run, under its evaluation claim (see `evaluate`)."""
     ds = open_dataset(data or run.data_path)
     _check_fingerprint(run, ds.fingerprint(), force)
@@ -333,12 +336,12 @@ def _evaluate(run: RunInfo, *, data: str | Path | None, options: EvalOptions, de
     # ROME's PCA fallbacks are printed unless quiet, and recorded either way (experiment workers are quiet).
     fallbacks, fallbacks_ext = RomeTally(), RomeTally()
     metrics = metrics_table(run, problems, trajectories, options, quiet=quiet, horizon=horizon, fallbacks=fallbacks,
-                            fallbacks_ext=fallbacks_ext, rome_cache=run.path / ROME_CACHE_DIR)
+                            fallbacks_ext=fallbacks_ext, rome_cache=run.path / ROME_CACHE_DIR, ray=ray)
     info: dict[str, Any] = {
         "run": run.name, "run_dir": str(run.path.resolve()), "model": run.model, "dataset": problems.dataset,
         "fold": run.fold, "seed": run.seed, "samples": options.samples, "k": options.k,
-        "metrics": list(check_metric_names(options.metrics)), "workers": options.workers, "eval_seed": options.seed,
-        "max_pooled": options.max_pooled, "rome_kde": options.rome_kde,
+        "metrics": list(check_metric_names(options.metrics)), "workers": options.workers, "ray": ray,
+        "eval_seed": options.seed, "max_pooled": options.max_pooled, "rome_kde": options.rome_kde,
         "problems": len(problems), "steps": int(trajectories.shape[2]), "device": str(torch_device),
         "seconds": round(time.perf_counter() - started, 3), "date": dt.datetime.now(dt.timezone.utc).isoformat(),
         "trajflow_version": __version__, "code_revision": revision,

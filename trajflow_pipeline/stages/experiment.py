@@ -13,27 +13,28 @@ their last epoch (see `trajflow train` in docs/usage.md) and are evaluated again
 Runs are worked on model by model, the models fitted in closed form (the constant-velocity baseline) first: they
 take minutes where a trained model takes hours, so a report of an unfinished experiment has its reference rows.
 
-Several processes can work on one experiment directory: ``--jobs N`` starts N workers, and the same command may
-also be started again (another terminal, another node on a shared file system). Each run is claimed by one
-process (an OS file lock in ``EXP/runs/.<run>.lock``, released when its holder exits, however it exits); the
-others go on to the next run. On a CPU each of N workers gets 1/N of torch's threads: small models gain more
-from parallel runs than from threads. ``--only PATTERN`` limits a process to the runs whose names match (shell
-patterns: ``flomo-zara2-s0``, ``'trajflow-*'``): to have one run trained now, beside a process that works through
-the plan, or to split an experiment between machines. The index still covers every finished run of the plan.
+Several processes can work on one experiment directory: ``--jobs N`` runs N runs at once in worker processes,
+``--ray ADDRESS`` makes each run a task on a Ray cluster (:mod:`trajflow_pipeline.util.scheduler` holds both
+backends), and the same command may also be started again (another terminal, another node on a shared file
+system). Each run is claimed by one process (an OS file lock in ``EXP/runs/.<run>.lock``, released when its holder
+exits, however it exits); a run claimed elsewhere is left to its holder. On a CPU each of N workers gets 1/N of
+torch's threads: small models gain more from parallel runs than from threads. A Ray task asks for
+``--cpus-per-run`` CPUs (torch threads and evaluation workers) and, with ``--device cuda`` or ``auto`` on a cluster
+that has GPUs, one GPU; EXP must be on a file system every node shares. A Ray task whose worker died (killed, node
+lost) is run again and resumes the run from its last checkpoint; a run that fails with a data or usage error is
+not retried: it is reported, with its one-line error, when the other runs are done. ``--only PATTERN`` limits a
+process to the runs whose names match (shell patterns: ``flomo-zara2-s0``, ``'trajflow-*'``): to have one run
+trained now, beside a process that works through the plan, or to split an experiment between machines. The index
+still covers every finished run of the plan.
 """
 
 from __future__ import annotations
 
 import fnmatch
 import json
-import multiprocessing
-import multiprocessing.connection
-import os
-import signal
-import threading
-import time
-from collections.abc import Sequence
-from dataclasses import replace
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor, Future, as_completed
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -52,11 +53,14 @@ from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
 from ..util.progress import say
+from ..util.scheduler import LocalPool, RayPool, Resources, cluster_resources, one_line
 from .evaluate import EvalOptions, evaluate
 from .experiment_config import ExperimentConfig, load_experiment, option_value
 
 #: the experiment's index: the runs planned and finished, the data and the config
 INDEX_FILE = "experiment.json"
+#: times Ray runs a run again whose worker died (each time it resumes from the run's last checkpoint)
+RAY_RETRIES = 3
 
 
 def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:
@@ -101,14 +105,20 @@ def experiment_complete(out: str | Path) -> bool:
 
 
 def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False,
-                   jobs: int = 1, only: Sequence[str] = ()) -> Path:
+                   jobs: int = 1, only: Sequence[str] = (), ray: str | None = None, cpus_per_run: int = 1) -> Path:
     """Train and evaluate every run of the experiment into `out` (resuming what an earlier call left), with `jobs`
-    worker processes; with `only` (run-name patterns), just the runs that match. Runs that another process is
-    working on are left to it (see the module docstring)."""
+    worker processes, or as tasks of `cpus_per_run` CPUs on the Ray cluster at `ray`; with `only` (run-name
+    patterns), just the runs that match. Runs that another process is working on are left to it (see the module
+    docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     if jobs > 1 and not claims_supported():
         raise UsageError("--jobs needs POSIX file locks (fcntl), which this platform lacks: use --jobs 1")
+    if ray is not None and jobs > 1:
+        raise UsageError("--jobs and --ray exclude each other: on Ray, as many runs run at once as the cluster has "
+                         "room for (--cpus-per-run sets a run's share)")
+    if cpus_per_run < 1:
+        raise UsageError(f"--cpus-per-run must be at least 1, got {cpus_per_run}")
     config = load_experiment(config_path)
     out = Path(out)
     text = input_files.read_text(config_path)
@@ -126,12 +136,20 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
             raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
                              + ". Use a new -o for the larger budget")
     selected = select_runs(plan, only)
+    left = sum(not run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name))
+               for model, fold, seed in plan if (name := run_name(model, fold, seed)) in selected)
     # Workers beyond the runs left to do would only idle while holding their share of the threads.
-    jobs = max(1, min(jobs, sum(not run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name))
-                                for model, fold, seed in plan if (name := run_name(model, fold, seed)) in selected)))
+    jobs = max(1, min(jobs, left))
+    pool = _ray_pool(ray, device, cpus_per_run) if ray is not None and left else None
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.toml", text)
-    if jobs == 1:
+    if pool is not None:
+        if not quiet:
+            say(f"Ray cluster {ray}: each run a task of {cpus_per_run} CPU(s)"
+                + (" and a GPU" if pool.resources.gpus else "") + f", up to {pool.capacity} at once")
+        _work_in_pool(config, data, out, pool, device=device, quiet=quiet, selected=selected, threads=cpus_per_run,
+                      eval_options=replace(config.eval_options, workers=cpus_per_run))
+    elif jobs == 1:
         _work(config, data, out, device=device, quiet=quiet, selected=selected)
     else:
         _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs, selected=selected)
@@ -243,52 +261,139 @@ def run_done(run_dir: Path, overrides: list[str]) -> bool:
     return saved is None or load_config(overrides=overrides, base=saved) == saved
 
 
-def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool, worker: str = "",
-          eval_options: EvalOptions | None = None, selected: frozenset[str] | None = None) -> None:
-    """Go through the plan and do each run (of the `selected` names, if given) that is neither finished nor claimed
-    by another process."""
+@dataclass(frozen=True)
+class RunJob:
+    """One planned run as a worker gets it: what to train and evaluate, where, and with how many torch threads
+    (None: as the worker has them)."""
+
+    config: ExperimentConfig
+    data: Path
+    out: Path
+    model: str
+    fold: str | None
+    seed: int
+    device: str
+    eval_options: EvalOptions
+    threads: int | None = None
+
+    @property
+    def name(self) -> str:
+        return run_name(self.model, self.fold, self.seed)
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """How a run handed to a worker ended: "done", "elsewhere" (another process holds it) or "failed" (`error`)."""
+
+    status: str
+    error: str = ""
+
+
+def _do_run(job: RunJob, *, quiet: bool, starting: Callable[[], None] = lambda: None) -> bool:
+    """Claim the run, then train it (resuming what is there) and evaluate it unless it is finished; `starting` is
+    called once the run is ours and not finished. False, having done nothing, when another process holds it."""
     from ..training import train
 
+    run_dir = job.out / "runs" / job.name
+    with claim(job.out / "runs" / f".{job.name}.lock") as mine:
+        if not mine:
+            return False
+        overrides = run_overrides(job.config, job.model, run_dir)  # as the run is now that it is ours
+        if run_done(run_dir, overrides):  # finished by another process between the check and the claim
+            return True
+        starting()
+        # Returns at once for a trained run; continues a run whose budget was raised (when that budget
+        # stopped it: otherwise its model, and so its evaluation, stay as they are), or one a killed worker left.
+        model_before = final_model_identity(run_dir)
+        train(job.data, run_dir, fold=job.fold, model=job.model, config_path=None, overrides=overrides,
+              seed=job.seed, device=job.device, resume=(run_dir / CONFIG_FILE).is_file(), quiet=quiet)
+        if not is_evaluated(run_dir) or final_model_identity(run_dir) != model_before:
+            evaluate(run_dir, data=job.data, options=job.eval_options, device=job.device, quiet=quiet)
+    return True
+
+
+def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
+          selected: frozenset[str] | None = None) -> None:
+    """Go through the plan in this process and do each run (of the `selected` names, if given) that is neither
+    finished nor claimed by another process; the first error ends the experiment."""
     plan = _plan(config, data)
 
     def note(message: str, style: str = "") -> None:
         if not quiet:
-            say(worker, (message, style))
+            say((message, style))
 
     for index, (model, fold, seed) in enumerate(plan, start=1):
         name = run_name(model, fold, seed)
         if selected is not None and name not in selected:
             continue
-        run_dir = out / "runs" / name
-        if run_done(run_dir, run_overrides(config, model, run_dir)):
-            if not worker:  # N workers would say it N times
-                note(f"{index}/{len(plan)} {name}: done earlier, skipped", "dim")
+        if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name)):
+            note(f"{index}/{len(plan)} {name}: done earlier, skipped", "dim")
             continue
-        with claim(out / "runs" / f".{name}.lock") as mine:
-            if not mine:
-                if not worker:  # sibling workers taking runs is expected; another command doing so is news
-                    note(f"{index}/{len(plan)} {name}: in progress in another process, left to it", "dim")
-                continue
-            overrides = run_overrides(config, model, run_dir)  # as the run is now that it is ours
-            if run_done(run_dir, overrides):  # finished by another process between the check and the claim
-                continue
-            note(f"{index}/{len(plan)} {name}", "bold")
-            inner_quiet = quiet or bool(worker)
-            # Returns at once for a trained run; continues a run whose budget was raised (when that budget
-            # stopped it: otherwise its model, and so its evaluation, stay as they are).
-            model_before = final_model_identity(run_dir)
-            train(data, run_dir, fold=fold, model=model, config_path=None, overrides=overrides, seed=seed,
-                  device=device, resume=(run_dir / CONFIG_FILE).is_file(), quiet=inner_quiet)
-            if not is_evaluated(run_dir) or final_model_identity(run_dir) != model_before:
-                evaluate(run_dir, data=data, options=eval_options or config.eval_options, device=device,
-                         quiet=inner_quiet)
+        job = RunJob(config, data, out, model, fold, seed, device, config.eval_options)
+        if not _do_run(job, quiet=quiet, starting=lambda: note(f"{index}/{len(plan)} {name}", "bold")):
+            note(f"{index}/{len(plan)} {name}: in progress in another process, left to it", "dim")
+            continue
         note(f"{index}/{len(plan)} {name}: done", "green")
         _write_index(out, config, data, plan)
 
 
+def _run_task(job: RunJob) -> RunOutcome:
+    """A run in a worker process or a Ray task. A data or usage error is the run's outcome, returned rather than
+    raised, so that Ray does not retry it (it would fail again); anything else (an interruption, a bug) is raised."""
+    if job.threads is not None:
+        import torch
+
+        torch.set_num_threads(job.threads)
+    try:
+        return RunOutcome("done" if _do_run(job, quiet=True) else "elsewhere")
+    except TrajflowError as error:
+        return RunOutcome("failed", one_line(error))
+
+
+def _work_in_pool(config: ExperimentConfig, data: Path, out: Path, pool: Executor, *, device: str, quiet: bool,
+                  selected: frozenset[str], eval_options: EvalOptions, threads: int | None) -> None:
+    """Hand each selected run that is not finished to `pool` (in plan order), write the index as runs finish, and
+    raise, once every run has ended, a TrajflowError naming each run that failed with its error."""
+    plan = _plan(config, data)
+    failed: list[str] = []
+    with pool:
+        jobs: dict[Future, tuple[int, str]] = {}
+        for index, (model, fold, seed) in enumerate(plan, start=1):
+            name = run_name(model, fold, seed)
+            if name not in selected:
+                continue
+            if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name)):
+                if not quiet:
+                    say((f"{index}/{len(plan)} {name}: done earlier, skipped", "dim"))
+                continue
+            job = RunJob(config, data, out, model, fold, seed, device, eval_options, threads)
+            jobs[pool.submit(_run_task, job)] = (index, name)
+        for future in as_completed(jobs):
+            index, name = jobs[future]
+            try:
+                outcome = future.result()
+            except Exception as error:  # the worker died (on Ray: beyond its retries), or a bug
+                outcome = RunOutcome("failed", one_line(error))
+            if outcome.status == "failed":
+                failed.append(f"{name}: {outcome.error}")
+                if not quiet:
+                    say((f"{index}/{len(plan)} {name}: failed", "red"), f" ({outcome.error})")
+            elif outcome.status == "elsewhere":
+                if not quiet:
+                    say((f"{index}/{len(plan)} {name}: in progress in another process, left to it", "dim"))
+            else:
+                if not quiet:
+                    say((f"{index}/{len(plan)} {name}: done", "green"))
+                _write_index(out, config, data, plan)
+    if failed:
+        _write_index(out, config, data, plan)
+        raise TrajflowError(f"{len(failed)} of {len(jobs)} run(s) failed: {'; '.join(failed)}. Finished runs are "
+                            "kept; running the same command again resumes the rest")
+
+
 def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
                        jobs: int, selected: frozenset[str]) -> None:
-    """`jobs` worker processes each run :func:`_work`; torch threads and evaluation workers are shared out."""
+    """The runs in `jobs` worker processes on this machine; torch threads and evaluation workers are shared out."""
     import torch
 
     threads = max(1, torch.get_num_threads() // jobs)
@@ -297,45 +402,23 @@ def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, devic
         options = replace(options, workers=max(1, resolve_workers(None) // jobs))
     if not quiet:
         say(f"{jobs} worker processes, {threads} torch thread(s) and {options.workers} evaluation worker(s) each")
-    context = multiprocessing.get_context("spawn")
-    workers = [context.Process(target=_worker_main, name=f"experiment-worker-{i}",
-                               args=(config, data, out, device, quiet, f"(worker {i}) ", options, threads, selected))
-               for i in range(1, jobs + 1)]
-    try:
-        for process in workers:
-            process.start()
-        for process in workers:
-            process.join()
-    except BaseException:
-        for process in workers:
-            if process.is_alive():
-                process.terminate()
-        for process in workers:
-            process.join()
-        raise
-    failed = [p.name for p in workers if p.exitcode != 0]
-    if failed:
-        raise TrajflowError(f"{len(failed)} of {jobs} experiment workers failed (their errors are above); finished "
-                            f"runs are kept, and running the same command again resumes the rest")
+    _work_in_pool(config, data, out, LocalPool(jobs), device=device, quiet=quiet, selected=selected,
+                  eval_options=options, threads=threads)
 
 
-def _worker_main(config: ExperimentConfig, data: Path, out: Path, device: str, quiet: bool, worker: str,
-                 options: EvalOptions, threads: int, selected: frozenset[str]) -> None:
-    """Entry point of a worker process: limited torch threads, then the shared plan; errors end it with status 1."""
-    import sys
-
-    import torch
-
-    _exit_with_parent()
-    torch.set_num_threads(threads)
-    try:
-        _work(config, data, out, device=device, quiet=quiet, worker=worker, eval_options=options,
-              selected=selected)
-    except TrajflowError as error:
-        say(worker, ("error:", "red"), f" {error}")
-        sys.exit(1)
-    except KeyboardInterrupt:  # Ctrl-C reaches every worker; the parent reports it once
-        sys.exit(130)
+def _ray_pool(address: str, device: str, cpus: int) -> RayPool:
+    """The Ray cluster at `address` as a pool of run tasks of `cpus` CPUs and, for `device` cuda (or auto on a
+    cluster with GPUs), one GPU; a usage error for a request the cluster can never meet (a task would wait
+    forever)."""
+    if device.startswith("cuda:"):
+        raise UsageError(f"--device {device} with --ray: use --device cuda (Ray gives each run its GPU)")
+    total = cluster_resources(address)
+    gpus = 1.0 if device == "cuda" or (device == "auto" and total.gpus >= 1) else 0.0
+    if gpus > total.gpus:
+        raise UsageError(f"--device {device}: the Ray cluster at {address} has no GPU")
+    if cpus > total.cpus:
+        raise UsageError(f"--cpus-per-run {cpus}: the Ray cluster at {address} has {total.cpus:g} CPU(s)")
+    return RayPool(address, Resources(cpus=cpus, gpus=gpus), retries=RAY_RETRIES)
 
 
 def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tuple[str, str | None, int]]) -> None:
@@ -356,20 +439,3 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
         atomic_write_text(out / INDEX_FILE, json.dumps(
             {"name": config.name, "data": str(data.resolve()), "runs": finished, "planned": runs, "plan": plan_rows,
              "config": config.source}, indent=2, default=str) + "\n")
-
-
-def _exit_with_parent(grace_s: float = 30.0) -> None:
-    """End this worker as soon as the process that started it ends, however it ends (a SIGTERM or SIGKILL to the
-    experiment command alone leaves its workers running otherwise, holding their runs' claims): an interrupt
-    first, so that temporary files are cleaned up and pools shut down, then a kill after `grace_s` seconds."""
-    parent = multiprocessing.parent_process()
-    if parent is None:
-        return
-
-    def watch() -> None:
-        multiprocessing.connection.wait([parent.sentinel])
-        os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(grace_s)
-        os.kill(os.getpid(), signal.SIGKILL)
-
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
