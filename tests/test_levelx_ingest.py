@@ -147,7 +147,7 @@ def test_mismatched_ids_between_the_csvs(tmp_path: Path) -> None:
     edit(raw / "00_tracksMeta.csv", lambda lines: [lines[0], "5" + lines[1][1:], *lines[2:]])
     fails("unid", raw, tmp_path / "out", "00_tracksMeta.csv:2: recordingId 5 differs from the recording's (0")
     raw = fresh(tmp_path / "h", "highd")
-    edit(raw / "01_tracksMeta.csv", lambda lines: [lines[0], *[line for line in lines[1:] if not line.startswith("3,")]])
+    edit(raw / "01_tracksMeta.csv", lambda lines: [line for line in lines if not line.startswith("3,")])
     fails("highd", raw, tmp_path / "out", "01_tracks.csv:", "track 3 is not listed in 01_tracksMeta.csv")
 
 

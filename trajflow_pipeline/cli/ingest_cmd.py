@@ -127,9 +127,8 @@ def _round(ctx: typer.Context, raw: Path, out: Path, recording: Optional[list[st
     with user_errors(ctx):
         config = load_geometry_file(geometry) if geometry is not None else None
         adapter = get_ingest("round")
-        extra = {"problems": problems, "classes": classes, "stride": stride}
-        result = adapter.run(raw, out, recordings=recording, geometry=config, overwrite=overwrite, quiet=quiet,
-                             **{k: v for k, v in extra.items() if v is not None and (k != "problems" or v != "gap-acceptance")})
+        result = adapter.run(raw, out, recordings=recording, geometry=config, problems=problems, classes=classes,
+                             stride=stride, overwrite=overwrite, quiet=quiet)
         adapter.report(result, quiet)
 
 

@@ -1,5 +1,5 @@
-"""`trajflow ingest levelx highd`: highD (levelX highway recordings) as a unified Parquet dataset, with the image as
-the map: lane changes into a gap (the changing vehicle and the vehicle in the target lane it merges in front of,
+"""`trajflow ingest levelx highd`: highD (levelX highway recordings) as a unified Parquet dataset, with the image
+as the map: lane changes into a gap (the changing vehicle and the vehicle in the target lane it merges in front of,
 predicted jointly) or every vehicle (``--problems all-agents``); 15 past / 25 future steps at 0.2 s, 5 folds of
 whole episodes. The specification: docs/datasets/levelx.md.
 """
@@ -13,8 +13,8 @@ import polars as pl
 
 from .base import Ingest
 from .levelx import LAYOUTS
-from .levelx_pipeline import (ALL_AGENTS, FOLDS, STRIDE, Horizons, Scenario, check_problems, ingest_levelx, parse_classes,
-                              wrote_line)
+from .levelx_pipeline import (ALL_AGENTS, FOLDS, STRIDE, Horizons, Scenario, check_problems, ingest_levelx,
+                              parse_classes, wrote_line)
 
 DATASET = "highd"
 DT = 0.2

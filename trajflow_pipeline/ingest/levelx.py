@@ -21,11 +21,12 @@ from .textfile import MAX_MAGNITUDE, csv_record_line, in_range, range_problem
 RECORDING_META_COLUMNS: dict[str, pl.DataType] = {
     "recordingId": pl.Int64(), "locationId": pl.Int64(), "frameRate": pl.Float64(), "orthoPxToMeter": pl.Float64()}
 TRACKS_META_COLUMNS: dict[str, pl.DataType] = {
-    "recordingId": pl.Int64(), "trackId": pl.Int64(), "initialFrame": pl.Int64(), "finalFrame": pl.Int64(), "numFrames": pl.Int64(),
-    "class": pl.String()}
+    "recordingId": pl.Int64(), "trackId": pl.Int64(), "initialFrame": pl.Int64(), "finalFrame": pl.Int64(),
+    "numFrames": pl.Int64(), "class": pl.String()}
 TRACKS_COLUMNS: dict[str, pl.DataType] = {
-    "recordingId": pl.Int64(), "trackId": pl.Int64(), "frame": pl.Int64(), "xCenter": pl.Float64(), "yCenter": pl.Float64(),
-    "heading": pl.Float64(), "width": pl.Float64(), "length": pl.Float64(), "xVelocity": pl.Float64(),
+    "recordingId": pl.Int64(), "trackId": pl.Int64(), "frame": pl.Int64(), "xCenter": pl.Float64(),
+    "yCenter": pl.Float64(), "heading": pl.Float64(), "width": pl.Float64(), "length": pl.Float64(),
+    "xVelocity": pl.Float64(),
     "yVelocity": pl.Float64()}
 #: highD (the oldest member): `id` for the track and the recording, a bounding box (x, y its upper-left corner,
 #: width along x, height along y) in metres with y pointing down the image, lanes and neighbours per row
@@ -321,7 +322,8 @@ def read_raw_tracks(recording: Recording, tracks_meta: pl.DataFrame, layout: Lay
     tracks = read_csv_columns(path, layout.tracks).rename({layout.id_column: "trackId"})
     if meta is not None:
         check_recording_id(tracks, path, meta, layout)
-    back = tracks.filter((pl.col("trackId") == pl.col("trackId").shift(1)) & (pl.col("frame") < pl.col("frame").shift(1)))
+    going_back = (pl.col("trackId") == pl.col("trackId").shift(1)) & (pl.col("frame") < pl.col("frame").shift(1))
+    back = tracks.filter(going_back)
     if back.height:
         first = back.row(0, named=True)
         raise DataError(f"track {first['trackId']} goes back to frame {first['frame']}; the rows of a track must be "
