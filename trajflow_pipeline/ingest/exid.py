@@ -1,5 +1,5 @@
-"""`trajflow ingest levelx exid`: exiD (levelX recordings of highway entries and exits) as a unified Parquet
-dataset, with the image as the map: every road user of the chosen classes (``--problems all-agents``, the only problems: the
+"""`trajflow ingest levelx exid`: exiD (levelX recordings of highway entries and exits) as a unified Parquet dataset,
+with the image as the map: every road user of the chosen classes (``--problems all-agents``, the only problems: the
 framework has no exiD scenario), 15 past / 25 future steps at 0.2 s, 5 folds of whole agents. The specification:
 docs/datasets/levelx.md.
 """
