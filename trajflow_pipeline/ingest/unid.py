@@ -1,6 +1,6 @@
 """`trajflow ingest levelx unid`: uniD (levelX recordings of a university campus: pedestrians, cyclists, vehicles) as a
-unified Parquet dataset, with the image as the map: every road user of the chosen classes (``--problems all-
-agents``, the only problems: the framework has no uniD scenario), 15 past / 25 future steps at 0.2 s, 5 folds of
+unified Parquet dataset, with the image as the map: every road user of the chosen classes (``--problems
+all-agents``, the only problems: the framework has no uniD scenario), 15 past / 25 future steps at 0.2 s, 5 folds of
 whole agents. The specification: docs/datasets/levelx.md.
 """
 
