@@ -12,11 +12,12 @@ import typer
 from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.ingest.base import Ingest, collect_warnings, warn
-from trajflow_pipeline.ingest.registry import NAMES, get_ingest
+from trajflow_pipeline.ingest.registry import LEVELX, NAMES, get_ingest
 from trajflow_pipeline.stages.experiment_config import INGESTS, load_experiment
 
 MODULES = {"eth-ucy": "eth_ucy", "synthetic-bimodal": "synthetic", "csv": "csv", "round": "round",
-           "nuscenes": "nuscenes", "forking-paths": "forking_paths"}
+           "nuscenes": "nuscenes", "forking-paths": "forking_paths", "highd": "highd", "ind": "ind", "exid": "exid",
+           "unid": "unid"}
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -29,7 +30,7 @@ def test_every_name_resolves_to_its_modules_adapter(name: str) -> None:
     assert "overwrite" not in adapter.options and "quiet" not in adapter.options
 
 
-def test_the_six_datasets_are_registered() -> None:
+def test_the_datasets_are_registered() -> None:
     assert set(NAMES) == set(MODULES)
 
 
@@ -41,7 +42,9 @@ def test_unknown_name_is_a_usage_error_listing_the_names() -> None:
 
 def test_cli_ingest_subcommands_are_the_registry() -> None:
     ingest_group = typer.main.get_command(app).commands["ingest"]  # type: ignore[attr-defined]
-    assert sorted(ingest_group.commands) == sorted(NAMES)
+    levelx = ingest_group.commands["levelx"].commands
+    assert sorted(levelx) == sorted(LEVELX)
+    assert sorted(set(ingest_group.commands) - {"levelx"} | set(levelx)) == sorted(NAMES)
 
 
 def test_experiment_ingests_are_registered_and_others_are_refused_naming_the_registry(tmp_path: Path) -> None:

@@ -18,11 +18,12 @@ from trajflow_pipeline.stages.report import report
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "paper"
 PAPER = sorted(p for p in CONFIGS.glob("*.toml") if not p.stem.endswith("_quick"))
 #: datasets the paper configs may point at, by the directory name they use
-KNOWN_DATA = {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths_augmented"}
+KNOWN_DATA = {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths_augmented", "highd", "ind"}
 
 
 def test_every_paper_config_has_a_quick_variant() -> None:
-    assert {p.stem for p in PAPER} == {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths"}
+    assert {p.stem for p in PAPER} == {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths", "highd",
+                                       "ind"}
     for config in PAPER:
         assert (CONFIGS / f"{config.stem}_quick.toml").exists(), config
 
@@ -50,7 +51,7 @@ def test_configs_evaluate_jsd_only_where_the_paper_reports_it(path: Path) -> Non
     recordings the few identical-input groups (standing pedestrians) would make a number that means nothing."""
     dataset = load_experiment(path).data_path.name.removesuffix("_augmented")
     metrics = set(load_experiment(path).eval_options.metrics)
-    assert ("jsd" in metrics) == ("jsd" in PAPER_TRAJFLOW[dataset])
+    assert ("jsd" in metrics) == ("jsd" in PAPER_TRAJFLOW.get(dataset, {}))
     assert {"min_ade", "min_fde", "nll"} <= metrics
 
 
@@ -127,3 +128,26 @@ def test_cpu_configs_change_only_the_training_budget_of_a_paper_protocol(path: P
 
 def test_there_are_cpu_budget_configs() -> None:
     assert BUDGET, "configs/cpu holds the paper protocols at a CPU-session training budget"
+
+
+@pytest.mark.parametrize("member", ["highd", "ind"])
+def test_levelx_quick_configs_run_end_to_end_on_fixtures(tmp_path: Path, member: str) -> None:
+    """highd_quick / ind_quick on their generated fixtures (two recordings; TrajFlow and CV only, tinier budgets)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from levelx_fixture import write_members
+
+    from trajflow_pipeline.ingest.registry import get_ingest
+
+    data = get_ingest(member).run(write_members(tmp_path / "raw", member, 2), tmp_path / "data", quiet=True)
+    text = (CONFIGS / f"{member}_quick.toml").read_text().replace(f'path = "data/{member}"', f'path = "{data.as_posix()}"')
+    text = text.replace('models = ["trajflow", "trajflow-no-ae", "flomo", "cv"]', 'models = ["trajflow", "cv"]')
+    text = re.sub(r"\[train\]\nset = \[[^\]]*\]", '[train]\nset = ["train.ae_max_epochs=1", "train.ae_min_epochs=1", '
+                  '"train.flow_max_epochs=1", "train.flow_min_epochs=1", "model.flow_layers=2"]', text)
+    text = text.replace("samples = 30", "samples = 5").replace("k = 20", "k = 3\nworkers = 1")
+    config = tmp_path / "quick.toml"
+    config.write_text(text)
+    experiment = run_experiment(config, tmp_path / "exp", quiet=True)
+    runs = json.loads((experiment / "experiment.json").read_text())["runs"]
+    assert len(runs) == 2

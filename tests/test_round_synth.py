@@ -197,40 +197,12 @@ def background(marker: tuple[float, float] = MARKER) -> np.ndarray:
 
 def write_recording(folder: Path, recording_id: int, tracks: list[Track], *, location_id: int = 1,
                     image: np.ndarray | None = None, frame_rate: int = FRAME_RATE) -> Path:
-    """Write XX_recordingMeta.csv, XX_tracksMeta.csv, XX_tracks.csv and XX_background.png into `folder`."""
-    folder.mkdir(parents=True, exist_ok=True)
-    prefix = folder / f"{recording_id:02d}"
-    rows = []
-    for track in tracks:
-        n = len(track.positions)
-        frames = track.initial_frame + np.arange(n)
-        width, length = SIZES[track.cls]
-        acceleration = np.gradient(track.velocities, axis=0) * frame_rate if n > 1 else np.zeros((n, 2))
-        speed = np.linalg.norm(track.velocities, axis=1)
-        rows.append(pl.DataFrame({
-            "recordingId": np.full(n, recording_id), "trackId": np.full(n, track.track_id), "frame": frames,
-            "trackLifetime": np.arange(n), "xCenter": track.positions[:, 0], "yCenter": track.positions[:, 1],
-            "heading": track.heading, "width": np.full(n, width), "length": np.full(n, length),
-            "xVelocity": track.velocities[:, 0], "yVelocity": track.velocities[:, 1],
-            "xAcceleration": acceleration[:, 0], "yAcceleration": acceleration[:, 1], "lonVelocity": speed,
-            "latVelocity": np.zeros(n), "lonAcceleration": np.zeros(n), "latAcceleration": np.zeros(n)}))
-    table = pl.concat(rows).sort("trackId", "frame")
-    table.write_csv(f"{prefix}_tracks.csv", float_precision=4)
-    meta = pl.DataFrame([{
-        "recordingId": recording_id, "trackId": t.track_id, "initialFrame": t.initial_frame,
-        "finalFrame": t.initial_frame + len(t.positions) - 1, "numFrames": len(t.positions),
-        "width": SIZES[t.cls][0], "length": SIZES[t.cls][1], "class": t.cls} for t in tracks]).sort("trackId")
-    meta.write_csv(f"{prefix}_tracksMeta.csv")
-    vrus = sum(t.cls in ("pedestrian", "bicycle") for t in tracks)
-    last = int(table.get_column("frame").max())
-    pl.DataFrame([{
-        "recordingId": recording_id, "locationId": location_id, "frameRate": frame_rate, "speedLimit": 13.89,
-        "weekday": "monday", "startTime": 8, "duration": round(last / frame_rate, 2), "numTracks": len(tracks),
-        "numVehicles": len(tracks) - vrus, "numVRUs": vrus, "latLocation": 50.7, "lonLocation": 6.1,
-        "xUtmOrigin": 300000.0, "yUtmOrigin": 5600000.0, "orthoPxToMeter": ORTHO_PX_TO_METER}]).write_csv(
-        f"{prefix}_recordingMeta.csv")
-    Image.fromarray(background() if image is None else image).convert("RGB").save(f"{prefix}_background.png")
-    return folder
+    """Write XX_recordingMeta.csv, XX_tracksMeta.csv, XX_tracks.csv and XX_background.png into `folder`
+    (levelx_fixture's writer of the drone layout, with the roundabout image)."""
+    from levelx_fixture import write_drone_recording
+
+    return write_drone_recording(folder, recording_id, tracks, member="round", location_id=location_id,
+                                 image=background() if image is None else image, frame_rate=frame_rate)
 
 
 def write_gap_recordings(folder: Path, count: int = 1) -> Path:

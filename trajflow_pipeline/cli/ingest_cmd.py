@@ -92,31 +92,158 @@ def ingest_csv_command(
         adapter.report(result, quiet)
 
 
-@ingest_app.command("round")
-def ingest_round_command(
-    ctx: typer.Context,
-    raw: Annotated[Path, typer.Argument(help="Folder of levelX recordings (XX_tracks.csv, XX_tracksMeta.csv, "
-                                             "XX_recordingMeta.csv, XX_background.png; or its data/ sub-folder), "
-                                             "or one file of the recording to read.")],
-    out: OutDir,
-    recording: Annotated[Optional[list[str]], typer.Option(
-        "--recording", "-r", help="Recording number to read (e.g. 00); repeat for several. Default: all.")] = None,
-    geometry: Annotated[Optional[Path], typer.Option(
-        help="JSON roundabout geometry: one object with centre (a list x, y), inner_radius, outer_radius, or an object "
-             "mapping locationId to one. Default: inferred per recording from circulating traffic.")] = None,
-    overwrite: Overwrite = False,
-    quiet: Quiet = False,
-) -> None:
-    """rounD gap-acceptance scenarios: entering target + circulating ego, 15 past / 25 (up to 35) future steps at
-    0.2 s, 5 folds, background maps."""
+LevelxRaw = Annotated[Path, typer.Argument(help="Folder of levelX recordings (XX_tracks.csv, XX_tracksMeta.csv, "
+                                                "XX_recordingMeta.csv and XX_background.png, highD: XX_highway.png; "
+                                                "or its data/ sub-folder), or one file of the recording to read.")]
+Recordings = Annotated[Optional[list[str]], typer.Option(
+    "--recording", "-r", help="Recording number to read (e.g. 00); repeat for several. Default: all.")]
+Classes = Annotated[Optional[str], typer.Option(
+    help="--problems all-agents: the levelX classes predicted, e.g. car,truck (default: every class but trailer; "
+         "exiD: motor vehicles).")]
+Stride = Annotated[Optional[int], typer.Option(
+    help="--problems all-agents: a sample every N frames of 0.2 s of each agent (default 5).")]
+
+levelx_app = typer.Typer(help="The levelX drone datasets (rounD, highD, inD, exiD, uniD) through one reader: 15 past / "
+                              "25 future steps at 0.2 s, 5 folds of whole episodes, the image as the map.",
+                         no_args_is_help=True)
+ingest_app.add_typer(levelx_app, name="levelx")
+
+
+def _levelx(ctx: typer.Context, member: str, raw: Path, out: Path, quiet: bool, **options: object) -> None:
+    """Run the levelX member's adapter with its options and print its line."""
+    from ..ingest.registry import get_ingest
+
+    with user_errors(ctx):
+        adapter = get_ingest(member)
+        adapter.report(adapter.run(raw, out, quiet=quiet, **options), quiet)
+
+
+def _round(ctx: typer.Context, raw: Path, out: Path, recording: Optional[list[str]], geometry: Optional[Path],
+           problems: str, classes: Optional[str], stride: Optional[int], overwrite: bool, quiet: bool) -> None:
+    """rounD, as `ingest round` and `ingest levelx round`."""
     from ..ingest.registry import get_ingest
     from ..ingest.round_geometry import load_geometry_file
 
     with user_errors(ctx):
         config = load_geometry_file(geometry) if geometry is not None else None
         adapter = get_ingest("round")
-        result = adapter.run(raw, out, recordings=recording, geometry=config, overwrite=overwrite, quiet=quiet)
+        result = adapter.run(raw, out, recordings=recording, geometry=config, problems=problems, classes=classes,
+                             stride=stride, overwrite=overwrite, quiet=quiet)
         adapter.report(result, quiet)
+
+
+Geometry = Annotated[Optional[Path], typer.Option(
+    help="JSON roundabout geometry: one object with centre (a list x, y), inner_radius, outer_radius, or an object "
+         "mapping locationId to one. Default: inferred per recording from circulating traffic.")]
+RoundProblems = Annotated[str, typer.Option(
+    help="gap-acceptance (entering target + circulating ego, joint) or all-agents (every agent of --classes).")]
+
+
+@ingest_app.command("round")
+def ingest_round_command(
+    ctx: typer.Context,
+    raw: LevelxRaw,
+    out: OutDir,
+    recording: Recordings = None,
+    geometry: Geometry = None,
+    problems: RoundProblems = "gap-acceptance",
+    classes: Classes = None,
+    stride: Stride = None,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """rounD gap-acceptance scenarios: entering target + circulating ego, 15 past / 25 (up to 35) future steps at
+    0.2 s, 5 folds, background maps (the same as `ingest levelx round`)."""
+    _round(ctx, raw, out, recording, geometry, problems, classes, stride, overwrite, quiet)
+
+
+@levelx_app.command("round")
+def levelx_round_command(
+    ctx: typer.Context,
+    raw: LevelxRaw,
+    out: OutDir,
+    recording: Recordings = None,
+    geometry: Geometry = None,
+    problems: RoundProblems = "gap-acceptance",
+    classes: Classes = None,
+    stride: Stride = None,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """rounD: gap acceptance at the roundabouts (entering target + circulating ego, joint) or every agent."""
+    _round(ctx, raw, out, recording, geometry, problems, classes, stride, overwrite, quiet)
+
+
+@levelx_app.command("highd")
+def levelx_highd_command(
+    ctx: typer.Context,
+    raw: LevelxRaw,
+    out: OutDir,
+    recording: Recordings = None,
+    problems: Annotated[str, typer.Option(
+        help="lane-change (the changing vehicle + the follower in the target lane, joint) or all-agents.")
+                        ] = "lane-change",
+    classes: Classes = None,
+    stride: Stride = None,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """highD: lane changes into a gap (joint) or every vehicle; y up (the image's y flipped), centres of the boxes."""
+    _levelx(ctx, "highd", raw, out, quiet, recordings=recording, problems=problems, classes=classes, stride=stride,
+            overwrite=overwrite)
+
+
+@levelx_app.command("ind")
+def levelx_ind_command(
+    ctx: typer.Context,
+    raw: LevelxRaw,
+    out: OutDir,
+    recording: Recordings = None,
+    problems: Annotated[str, typer.Option(
+        help="gap-acceptance (a left-turning vehicle + an oncoming one it may cut off, joint) or all-agents.")
+                        ] = "gap-acceptance",
+    classes: Classes = None,
+    stride: Stride = None,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """inD: gap acceptance at the intersections (joint) or every road user."""
+    _levelx(ctx, "ind", raw, out, quiet, recordings=recording, problems=problems, classes=classes, stride=stride,
+            overwrite=overwrite)
+
+
+@levelx_app.command("exid")
+def levelx_exid_command(
+    ctx: typer.Context,
+    raw: LevelxRaw,
+    out: OutDir,
+    recording: Recordings = None,
+    problems: Annotated[str, typer.Option(help="all-agents (exiD has no scenario of its own).")] = "all-agents",
+    classes: Classes = None,
+    stride: Stride = None,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """exiD: every vehicle at the highway entries and exits (the lanelet2 maps are not read; the image is the map)."""
+    _levelx(ctx, "exid", raw, out, quiet, recordings=recording, problems=problems, classes=classes, stride=stride,
+            overwrite=overwrite)
+
+
+@levelx_app.command("unid")
+def levelx_unid_command(
+    ctx: typer.Context,
+    raw: LevelxRaw,
+    out: OutDir,
+    recording: Recordings = None,
+    problems: Annotated[str, typer.Option(help="all-agents (uniD has no scenario of its own).")] = "all-agents",
+    classes: Classes = None,
+    stride: Stride = None,
+    overwrite: Overwrite = False,
+    quiet: Quiet = False,
+) -> None:
+    """uniD: every road user of the campus (pedestrians, cyclists, vehicles)."""
+    _levelx(ctx, "unid", raw, out, quiet, recordings=recording, problems=problems, classes=classes, stride=stride,
+            overwrite=overwrite)
 
 
 @ingest_app.command("nuscenes")

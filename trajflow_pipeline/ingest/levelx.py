@@ -1,6 +1,8 @@
-"""The files of a levelX recording (rounD and its family: XX_recordingMeta.csv, XX_tracksMeta.csv, XX_tracks.csv,
-XX_background.png): finding the recordings, and reading each CSV with its types checked, every problem a DataError
-naming the file and the line an editor shows."""
+"""The files of a levelX recording (rounD and its family highD, inD, exiD, uniD: XX_recordingMeta.csv,
+XX_tracksMeta.csv, XX_tracks.csv and the recording's image, XX_background.png or highD's XX_highway.png): each
+member's :class:`Layout` (the columns levelX documents for it), finding the recordings, and reading each CSV with its
+types checked, every problem a DataError naming the file and the line an editor shows. The member layouts and what
+the ingests make of them: docs/datasets/levelx.md."""
 
 from __future__ import annotations
 
@@ -19,14 +21,75 @@ from .textfile import MAX_MAGNITUDE, csv_record_line, in_range, range_problem
 RECORDING_META_COLUMNS: dict[str, pl.DataType] = {
     "recordingId": pl.Int64(), "locationId": pl.Int64(), "frameRate": pl.Float64(), "orthoPxToMeter": pl.Float64()}
 TRACKS_META_COLUMNS: dict[str, pl.DataType] = {
-    "trackId": pl.Int64(), "initialFrame": pl.Int64(), "finalFrame": pl.Int64(), "numFrames": pl.Int64(),
-    "class": pl.String()}
+    "recordingId": pl.Int64(), "trackId": pl.Int64(), "initialFrame": pl.Int64(), "finalFrame": pl.Int64(),
+    "numFrames": pl.Int64(), "class": pl.String()}
 TRACKS_COLUMNS: dict[str, pl.DataType] = {
-    "trackId": pl.Int64(), "frame": pl.Int64(), "xCenter": pl.Float64(), "yCenter": pl.Float64(),
-    "heading": pl.Float64(), "width": pl.Float64(), "length": pl.Float64(), "xVelocity": pl.Float64(),
+    "recordingId": pl.Int64(), "trackId": pl.Int64(), "frame": pl.Int64(), "xCenter": pl.Float64(),
+    "yCenter": pl.Float64(), "heading": pl.Float64(), "width": pl.Float64(), "length": pl.Float64(),
+    "xVelocity": pl.Float64(),
     "yVelocity": pl.Float64()}
-FILE_KINDS = ("recordingMeta.csv", "tracksMeta.csv", "tracks.csv", "background.png")
-_FILE_PATTERN = re.compile(r"^(\d+)_(recordingMeta\.csv|tracksMeta\.csv|tracks\.csv|background\.png)$")
+#: highD (the oldest member): `id` for the track and the recording, a bounding box (x, y its upper-left corner,
+#: width along x, height along y) in metres with y pointing down the image, lanes and neighbours per row
+HIGHD_RECORDING_META_COLUMNS: dict[str, pl.DataType] = {
+    "id": pl.Int64(), "locationId": pl.Int64(), "frameRate": pl.Float64(), "upperLaneMarkings": pl.String(),
+    "lowerLaneMarkings": pl.String()}
+HIGHD_TRACKS_META_COLUMNS: dict[str, pl.DataType] = {
+    "id": pl.Int64(), "initialFrame": pl.Int64(), "finalFrame": pl.Int64(), "numFrames": pl.Int64(),
+    "class": pl.String(), "drivingDirection": pl.Int64()}
+HIGHD_TRACKS_COLUMNS: dict[str, pl.DataType] = {
+    "id": pl.Int64(), "frame": pl.Int64(), "x": pl.Float64(), "y": pl.Float64(), "width": pl.Float64(),
+    "height": pl.Float64(), "xVelocity": pl.Float64(), "yVelocity": pl.Float64(), "precedingId": pl.Int64(),
+    "followingId": pl.Int64(), "laneId": pl.Int64()}
+#: metres per pixel of highD's full-resolution aerial image (the highD tools scale its XX_highway.png by 4 more)
+HIGHD_ORTHO_PX_TO_METER = 0.10106
+
+
+@dataclass(frozen=True)
+class Layout:
+    """One levelX member's files: the columns read from each CSV (typed), the image's file name and scale."""
+
+    #: registry / dataset name ("round", "highd", ...) and the name people write ("rounD", "highD", ...)
+    name: str
+    title: str
+    recording_meta: dict[str, pl.DataType]
+    tracks_meta: dict[str, pl.DataType]
+    tracks: dict[str, pl.DataType]
+    #: the file kind of the image ("background.png"; highD: "highway.png")
+    image: str = "background.png"
+    #: the column naming the track (and, in the recording meta, the recording)
+    id_column: str = "trackId"
+    recording_id_column: str = "recordingId"
+    #: the levelX tools show the image downscaled by this factor: metres per pixel = orthoPxToMeter * factor
+    scale_down: int = 10
+    #: metres per raw pixel where the recording meta has no orthoPxToMeter (highD)
+    ortho_px_to_meter: float | None = None
+
+    @property
+    def file_kinds(self) -> tuple[str, ...]:
+        return ("recordingMeta.csv", "tracksMeta.csv", "tracks.csv", self.image)
+
+    @property
+    def file_pattern(self) -> re.Pattern[str]:
+        return re.compile(r"^(\d+)_(recordingMeta\.csv|tracksMeta\.csv|tracks\.csv|" + re.escape(self.image) + r")$")
+
+
+def _drone_layout(name: str, title: str, scale_down: int) -> Layout:
+    """inD, rounD, exiD and uniD share the drone layout (xCenter / yCenter, heading, trackId, orthoPxToMeter)."""
+    return Layout(name, title, RECORDING_META_COLUMNS, TRACKS_META_COLUMNS, TRACKS_COLUMNS, scale_down=scale_down)
+
+
+#: the members and their image scale-down factors (those of the levelX tools and of lxd-io)
+LAYOUTS: dict[str, Layout] = {
+    "round": _drone_layout("round", "rounD", 10),
+    "ind": _drone_layout("ind", "inD", 12),
+    "exid": _drone_layout("exid", "exiD", 6),
+    "unid": _drone_layout("unid", "uniD", 2),
+    "highd": Layout("highd", "highD", HIGHD_RECORDING_META_COLUMNS, HIGHD_TRACKS_META_COLUMNS, HIGHD_TRACKS_COLUMNS,
+                    image="highway.png", id_column="id", recording_id_column="id", scale_down=4,
+                    ortho_px_to_meter=HIGHD_ORTHO_PX_TO_METER),
+}
+ROUND = LAYOUTS["round"]
+FILE_KINDS = ROUND.file_kinds
 
 
 @dataclass(frozen=True)
@@ -53,34 +116,37 @@ class RecordingMeta:
     location_id: int
     frame_rate: float
     ortho_px_to_meter: float
+    #: highD: the y positions (metres, y up as the ingest stores them) of the upper and lower lane markings
+    lane_markings: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
 
 # --------------------------------------------------------------------------------------------- discovering input
 
 
-def discover_recordings(raw: Path, recordings: Sequence[int | str] | None = None) -> list[Recording]:
+def discover_recordings(raw: Path, recordings: Sequence[int | str] | None = None,
+                        layout: Layout = ROUND) -> list[Recording]:
     """The recordings to read: all of a folder (or its data/ sub-folder), a selection, or one file's recording.
 
-    Every selected recording must have its four files; the list is sorted by recording number.
+    Every selected recording must have its four files (those of `layout`); the list is sorted by recording number.
     """
     if not raw.exists():
-        raise DataError("raw rounD path not found", path=raw)
+        raise DataError(f"raw {layout.title} path not found", path=raw)
     if raw.is_file():
-        match = _FILE_PATTERN.match(raw.name)
+        match = layout.file_pattern.match(raw.name)
         if match is None:
             raise DataError("not a levelX recording file (expected XX_tracks.csv, XX_tracksMeta.csv, "
-                            "XX_recordingMeta.csv or XX_background.png)", path=raw)
-        folder, found = raw.parent, _prefixes_in(raw.parent)
+                            f"XX_recordingMeta.csv or XX_{layout.image})", path=raw)
+        folder, found = raw.parent, _prefixes_in(raw.parent, layout)
         wanted = {int(match.group(1))} if recordings is None else None
     else:
         folder = raw
-        found = _prefixes_in(folder)
+        found = _prefixes_in(folder, layout)
         if not found and (raw / "data").is_dir():
-            folder, found = raw / "data", _prefixes_in(raw / "data")
+            folder, found = raw / "data", _prefixes_in(raw / "data", layout)
         wanted = None
     if not found:
         raise DataError("no levelX recordings (XX_tracks.csv, XX_tracksMeta.csv, XX_recordingMeta.csv, "
-                        "XX_background.png) in this folder", path=raw)
+                        f"XX_{layout.image}) in this folder", path=raw)
     if recordings is not None:
         wanted = {_recording_number(value) for value in recordings}
         unknown = sorted(wanted - set(found))
@@ -91,16 +157,16 @@ def discover_recordings(raw: Path, recordings: Sequence[int | str] | None = None
                                                                                   else found)),
                       key=lambda recording: recording.scene_id)
     for recording in selected:
-        for kind in FILE_KINDS:
+        for kind in layout.file_kinds:
             if not recording.path(kind).is_file():
-                raise DataError(f"file is missing (every levelX recording needs XX_{', XX_'.join(FILE_KINDS)})",
+                raise DataError(f"file is missing (every levelX recording needs XX_{', XX_'.join(layout.file_kinds)})",
                                 path=recording.path(kind))
     return selected
 
 
-def _prefixes_in(folder: Path) -> dict[int, str]:
+def _prefixes_in(folder: Path, layout: Layout) -> dict[int, str]:
     """Recording number -> file prefix of the levelX files in a folder ("07" for 07_tracks.csv)."""
-    matches = (_FILE_PATTERN.match(p.name) for p in sorted(folder.iterdir()))
+    matches = (layout.file_pattern.match(p.name) for p in sorted(folder.iterdir()))
     return {int(m.group(1)): m.group(1) for m in matches if m}
 
 
@@ -181,35 +247,87 @@ def _locate_bad_cell(path: Path, columns: dict[str, pl.DataType]) -> DataError:
     return DataError("cannot parse CSV", path=path)
 
 
-def read_recording_meta(recording: Recording) -> RecordingMeta:
-    """recordingId, locationId, frameRate and orthoPxToMeter of a recording (its meta file has one row)."""
+def read_recording_meta(recording: Recording, layout: Layout = ROUND) -> RecordingMeta:
+    """Recording id, locationId, frameRate and metres per raw image pixel of a recording (its meta file has one
+    row); highD's lane markings too."""
     path = recording.path("recordingMeta.csv")
-    meta = read_csv_columns(path, RECORDING_META_COLUMNS)
+    meta = read_csv_columns(path, layout.recording_meta)
     if meta.height != 1:
         raise DataError(f"expected exactly one data row, found {meta.height}", path=path)
     row = meta.row(0, named=True)
-    if row["frameRate"] <= 0 or row["orthoPxToMeter"] <= 0:
-        raise DataError("frameRate and orthoPxToMeter must be positive", path=path, line=2)
-    return RecordingMeta(int(row["recordingId"]), int(row["locationId"]), float(row["frameRate"]),
-                         float(row["orthoPxToMeter"]))
+    ortho = layout.ortho_px_to_meter if layout.ortho_px_to_meter is not None else row["orthoPxToMeter"]
+    if row["frameRate"] <= 0 or ortho <= 0:
+        what = "frameRate and orthoPxToMeter" if layout.ortho_px_to_meter is None else "frameRate"
+        raise DataError(f"{what} must be positive", path=path, line=2)
+    markings = None
+    if "upperLaneMarkings" in layout.recording_meta:
+        markings = (_markings(row["upperLaneMarkings"], "upperLaneMarkings", path),
+                    _markings(row["lowerLaneMarkings"], "lowerLaneMarkings", path))
+    return RecordingMeta(int(row[layout.recording_id_column]), int(row["locationId"]), float(row["frameRate"]),
+                         float(ortho), markings)
 
 
-def read_tracks_meta(recording: Recording) -> pl.DataFrame:
-    """trackId, class and frame span of each track; track ids must be unique."""
+def _markings(text: str, column: str, path: Path) -> tuple[float, ...]:
+    """highD lane markings "8.51;12.59;16.43" (y down the image) -> y positions with y up, in the order given."""
+    try:
+        values = tuple(-float(part) for part in text.strip().split(";") if part.strip())
+    except ValueError:
+        raise DataError(f"column '{column}' holds {text!r}, not numbers separated by ';'", path=path,
+                        line=2) from None
+    if len(values) < 2 or not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in values):
+        raise DataError(f"column '{column}' holds {text!r}: expected two or more finite y positions", path=path,
+                        line=2)
+    return values
+
+
+def check_recording_id(table: pl.DataFrame, path: Path, meta: RecordingMeta, layout: Layout) -> None:
+    """Every row of a tracks or tracks meta file names the recording its recording meta file describes (the drone
+    layouts repeat recordingId on every row; highD's files have no such column)."""
+    if "recordingId" not in table.columns:
+        return
+    other = table.filter(pl.col("recordingId") != meta.recording_id)
+    if other.height:
+        first = other.row(0, named=True)
+        raise DataError(f"recordingId {first['recordingId']} differs from the recording's "
+                        f"({meta.recording_id} in its recordingMeta.csv)", path=path, line=first["__row"] + 2)
+
+
+def read_tracks_meta(recording: Recording, layout: Layout = ROUND, meta: RecordingMeta | None = None) -> pl.DataFrame:
+    """trackId, class (lower case) and frame span of each track (highD: and its drivingDirection, 1 or 2); track ids
+    must be unique. highD's `id` is renamed trackId."""
     path = recording.path("tracksMeta.csv")
-    meta = read_csv_columns(path, TRACKS_META_COLUMNS)
-    repeated = meta.filter(pl.col("trackId").is_duplicated())
+    table = read_csv_columns(path, layout.tracks_meta).rename({layout.id_column: "trackId"})
+    if meta is not None:
+        check_recording_id(table, path, meta, layout)
+    repeated = table.filter(pl.col("trackId").is_duplicated())
     if repeated.height:
         first = repeated.row(0, named=True)
-        raise DataError(f"trackId {first['trackId']} appears more than once", path=path, line=first["__row"] + 2)
-    return meta.with_columns(pl.col("class").str.strip_chars().str.to_lowercase())
+        raise DataError(f"{layout.id_column} {first['trackId']} appears more than once", path=path,
+                        line=first["__row"] + 2)
+    if "drivingDirection" in table.columns:
+        wrong = table.filter(~pl.col("drivingDirection").is_in([1, 2]))
+        if wrong.height:
+            first = wrong.row(0, named=True)
+            raise DataError(f"drivingDirection {first['drivingDirection']} of track {first['trackId']} is neither 1 "
+                            "(upper lanes) nor 2 (lower lanes)", path=path, line=first["__row"] + 2)
+    return table.with_columns(pl.col("class").str.strip_chars().str.to_lowercase())
 
 
-def read_raw_tracks(recording: Recording, tracks_meta: pl.DataFrame) -> pl.DataFrame:
+def read_raw_tracks(recording: Recording, tracks_meta: pl.DataFrame, layout: Layout = ROUND,
+                    meta: RecordingMeta | None = None) -> pl.DataFrame:
     """All rows of XX_tracks.csv, checked: sorted by (trackId, frame), unique, contiguous, consistent with the
-    tracks meta file (every track listed there, with the same frame span)."""
+    tracks meta file (every track listed there, with the same frame span). Rows of one track whose frames go
+    backwards are an error; tracks may follow each other in any order. highD's `id` is renamed trackId."""
     path = recording.path("tracks.csv")
-    tracks = read_csv_columns(path, TRACKS_COLUMNS)
+    tracks = read_csv_columns(path, layout.tracks).rename({layout.id_column: "trackId"})
+    if meta is not None:
+        check_recording_id(tracks, path, meta, layout)
+    going_back = (pl.col("trackId") == pl.col("trackId").shift(1)) & (pl.col("frame") < pl.col("frame").shift(1))
+    back = tracks.filter(going_back)
+    if back.height:
+        first = back.row(0, named=True)
+        raise DataError(f"track {first['trackId']} goes back to frame {first['frame']}; the rows of a track must be "
+                        "in frame order", path=path, line=first["__row"] + 2)
     in_order = (pl.col("trackId") > pl.col("trackId").shift(1)) | (
         (pl.col("trackId") == pl.col("trackId").shift(1)) & (pl.col("frame") >= pl.col("frame").shift(1)))
     if not tracks.select(in_order.fill_null(True).all()).item():

@@ -10,7 +10,10 @@ from .base import Ingest
 
 #: registry name -> the module of trajflow_pipeline.ingest whose ADAPTER it is
 _MODULES = {"eth-ucy": "eth_ucy", "synthetic-bimodal": "synthetic", "csv": "csv", "round": "round",
-            "nuscenes": "nuscenes", "forking-paths": "forking_paths"}
+            "nuscenes": "nuscenes", "forking-paths": "forking_paths", "highd": "highd", "ind": "ind", "exid": "exid",
+            "unid": "unid"}
+#: the levelX family (``trajflow ingest levelx MEMBER``; rounD also as ``trajflow ingest round``)
+LEVELX = ("round", "highd", "ind", "exid", "unid")
 #: every registered ingest, in the order the CLI lists them
 NAMES = tuple(_MODULES)
 

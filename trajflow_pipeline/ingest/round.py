@@ -5,8 +5,6 @@ situations. The specification (scenario definition, horizons, folds, maps): docs
 
 from __future__ import annotations
 
-import hashlib
-import io
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -15,21 +13,24 @@ from typing import Any
 
 import numpy as np
 import polars as pl
-from PIL import Image, UnidentifiedImageError
 from rich.text import Text
 
-from ..errors import DataError
+from ..errors import DataError, UsageError
 from ..schemas import PROTOCOL_FOLDS, DatasetMeta, DatasetWriter
-from ..util import input_files
 from ..util.progress import make_progress, styled
 from .base import Ingest, collect_warnings, warn
 from .folds import ceiled_share, fold_arrays
-from .levelx import (FILE_KINDS, Recording, RecordingMeta, discover_recordings, read_raw_tracks,
+from .levelx import (FILE_KINDS, ROUND, Recording, RecordingMeta, discover_recordings, read_raw_tracks,
                      read_recording_meta, read_tracks_meta)
+from .levelx_pipeline import (ALL_AGENTS, DEFAULT_CLASSES, MOTOR_CLASSES, STRIDE, Horizons, background_map,
+                              check_problems, ingest_levelx, parse_classes, resample)
+from .levelx_pipeline import wrote_line as all_agents_line
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
 from .windows import GROUP_TOLERANCE_M, _window_hashes
 
 DATASET = "round"
+#: the --problems value of the scenario below (the default); "all-agents" is the other
+GAP_ACCEPTANCE = "gap-acceptance"
 DT = 0.2
 N_PAST, N_FUTURE, N_FUTURE_MAX = 15, 25, 35
 #: the decision horizon counts at most this many steps, plus HORIZON_MARGIN (Schumann et al.: 2 * n_past)
@@ -39,19 +40,11 @@ HORIZON_MARGIN = 5
 #: which it could still stop before the conflict zone (t_crit) a prediction is useless (Schumann et al.: a_brake)
 CRITICAL_DECELERATION = 4.0
 #: the levelX tools display rounD backgrounds downscaled by this factor: metres per pixel = orthoPxToMeter * 10
-BACKGROUND_SCALE_DOWN = 10
-#: fewer positions than this inside the background image means its scale convention does not fit the tracks
-MIN_INSIDE_IMAGE = 0.9
+BACKGROUND_SCALE_DOWN = ROUND.scale_down
 FOLDS = 5
 VAL_FRACTION = 0.1
 SPLIT_SEED = 0
 SHARD_ROWS = 500_000
-
-CLASS_TYPES: dict[str, str] = {"car": "vehicle", "van": "vehicle", "truck": "vehicle", "bus": "vehicle",
-                               "trailer": "vehicle", "truck_bus": "vehicle", "motorcycle": "motorcycle",
-                               "bicycle": "bicycle", "pedestrian": "pedestrian"}
-#: classes that can be target or ego (a trailer rides behind its tractor; VRUs are context only)
-MOTOR_CLASSES = ("car", "van", "truck", "bus", "truck_bus", "motorcycle")
 
 SAMPLE_SCHEMA = {"sample_id": pl.Int64, "scene_id": pl.String, "agent_id": pl.Int64, "t0_frame": pl.Int64,
                  "n_past": pl.Int64, "n_future": pl.Int64, "group_id": pl.Int64, "split": pl.String,
@@ -76,63 +69,6 @@ class RecordingResult:
     scene: dict[str, Any]
     samples: pl.DataFrame
     summary: dict[str, Any] = field(default_factory=dict)
-
-
-def resample(raw: pl.DataFrame, tracks_meta: pl.DataFrame, meta: RecordingMeta, recording: Recording) -> pl.DataFrame:
-    """Contract tracks at DT: every (frameRate * DT)-th raw frame, classes mapped, heading in radians."""
-    step = meta.frame_rate * DT
-    if abs(step - round(step)) > 1e-6 or round(step) < 1:
-        raise DataError(f"frameRate {meta.frame_rate:g} Hz cannot be resampled to {1 / DT:g} Hz by keeping every "
-                        f"n-th frame", path=recording.path("recordingMeta.csv"), line=2)
-    step = int(round(step))
-    kept = raw.filter(pl.col("frame") % step == 0).join(
-        tracks_meta.select("trackId", pl.col("class").alias("agent_class")), on="trackId", how="left")
-    frame = (pl.col("frame") // step).cast(pl.Int64)
-    return kept.select(
-        pl.lit(recording.scene_id).alias("scene_id"),
-        pl.col("trackId").alias("agent_id"),
-        pl.col("agent_class").replace_strict(CLASS_TYPES, default="unknown", return_dtype=pl.String)
-        .alias("agent_type"),
-        frame.alias("frame"),
-        (frame.cast(pl.Float64) * DT).alias("t"),
-        pl.col("xCenter").alias("x"), pl.col("yCenter").alias("y"),
-        ((pl.col("heading") + 180.0) % 360.0 - 180.0).radians().alias("heading"),
-        pl.col("xVelocity").alias("vx"), pl.col("yVelocity").alias("vy"),
-        "length", "width", "agent_class",
-    ).sort("agent_id", "frame")
-
-
-# ---------------------------------------------------------------------------------------------------------- maps
-
-
-def background_map(recording: Recording, meta: RecordingMeta, root: Path, tracks: pl.DataFrame) -> dict[str, Any]:
-    """Store the recording's background as a grey-scale PNG under root/maps (once per distinct image) and return
-    the scene's map columns. Warns when the tracks do not fall on the image under the levelX convention."""
-    path = recording.path("background.png")
-    try:
-        with Image.open(input_files.regular_file(path)) as image:
-            grey = image.convert("L")
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as error:
-        raise DataError(f"cannot open the background image ({error})", path=path) from None
-    buffer = io.BytesIO()
-    grey.save(buffer, format="PNG")
-    data = buffer.getvalue()
-    name = f"maps/{hashlib.sha256(data).hexdigest()[:16]}.png"
-    target = root / name
-    if not target.exists():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_bytes(data)
-    metres = meta.ortho_px_to_meter * BACKGROUND_SCALE_DOWN
-    affine = [1.0 / metres, 0.0, 0.0, 0.0, -1.0 / metres, 0.0]
-    if tracks.height:
-        width, height = grey.size
-        inside = tracks.select(((pl.col("x") * affine[0]).is_between(-0.5, width - 0.5)
-                                & (pl.col("y") * affine[4]).is_between(-0.5, height - 0.5)).mean()).item()
-        if inside < MIN_INSIDE_IMAGE:
-            warn(f"{path}: only {inside:.0%} of the positions fall on the image with metres per pixel = "
-                  f"orthoPxToMeter * {BACKGROUND_SCALE_DOWN} and pixel = (x, -y) / scale; map crops may be "
-                  "misaligned")
-    return {"map_path": name, "map_m_per_px": metres, "map_world_to_px": affine}
 
 
 # -------------------------------------------------------------------------------------------------- scenarios
@@ -371,13 +307,13 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
     `step` is called after each of the four stages (reading, map, scenarios, groups) with the name of the next.
     """
     meta = read_recording_meta(recording)
-    tracks_meta = read_tracks_meta(recording)
-    raw = read_raw_tracks(recording, tracks_meta)
+    tracks_meta = read_tracks_meta(recording, ROUND, meta)
+    raw = read_raw_tracks(recording, tracks_meta, ROUND, meta)
     raw_rows = raw.height
-    tracks = resample(raw, tracks_meta, meta, recording)
+    tracks = resample(raw, tracks_meta, meta, recording, DT)
     del raw
     step("map")
-    map_columns = background_map(recording, meta, root, tracks)
+    map_columns = background_map(recording, meta, root, tracks, ROUND)
     step("scenarios")
     used = _geometry(geometry, meta, tracks, recording)
     situations = extract_situations(tracks, used) if used is not None else None
@@ -414,13 +350,22 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
 
 
 def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int | str] | None = None,
-                 geometry: GeometryConfig | None = None, overwrite: bool = False, quiet: bool = False) -> Path:
+                 geometry: GeometryConfig | None = None, problems: str = GAP_ACCEPTANCE,
+                 classes: Sequence[str] | str | None = None, stride: int | None = None, overwrite: bool = False,
+                 quiet: bool = False) -> Path:
     """Ingest rounD recordings from `raw` (a folder, its data/ sub-folder or one recording's file) into `out`.
 
     `recordings` selects recording numbers; `geometry` is one RoundaboutGeometry for all recordings or a mapping
-    locationId -> geometry (locations not in it are inferred from their own traffic). Recordings are processed one
-    at a time; the dataset appears at `out` only when complete. Returns `out`.
+    locationId -> geometry (locations not in it are inferred from their own traffic). `problems` "all-agents"
+    predicts every agent of `classes` every `stride` frames instead of the gap-acceptance pairs (levelx_pipeline).
+    Recordings are processed one at a time; the dataset appears at `out` only when complete. Returns `out`.
     """
+    if check_problems(problems, (GAP_ACCEPTANCE,), classes, stride) == ALL_AGENTS:
+        if geometry is not None:
+            raise UsageError("--geometry belongs to the gap-acceptance problems, not to --problems all-agents")
+        return ingest_levelx(ROUND, raw, out, horizons=Horizons(DT, N_PAST, N_FUTURE), scenario=None,
+                             classes=parse_classes(classes, DEFAULT_CLASSES), stride=stride or STRIDE,
+                             recordings=recordings, overwrite=overwrite, quiet=quiet)
     raw, out = Path(raw), Path(out)
     selected = discover_recordings(raw, recordings)
     meta = DatasetMeta(dataset=DATASET, dt=DT, protocol=PROTOCOL_FOLDS)
@@ -458,6 +403,8 @@ def ingest_round(raw: str | Path, out: str | Path, *, recordings: Sequence[int |
 
 def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
     """The line after the ingest: recordings, rows, samples (two per target/ego pair), folds and maps."""
+    if (summary.get("lineage") or {}).get("problems") == ALL_AGENTS:
+        return all_agents_line(out, summary)
     return styled(("wrote", "green"), f" {out}: {summary['scenes']} recordings, {summary['track_rows']} track rows, "
                   f"{summary['samples']} samples ({summary['samples'] // 2} target/ego pairs), "
                   f"{len(summary['folds'])} folds, maps: {summary['has_map']}")
