@@ -66,3 +66,48 @@ def test_the_cli_starts_without_torch() -> None:
     probe = "import sys, trajflow_pipeline.cli.app; print('torch' in sys.modules)"
     child = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120)
     assert child.stdout.strip() == "False"
+
+
+#: stage -> the stages it chains (runs as a step of its own work); no other module imports a stage
+STAGE_CHAINS = {
+    "demo": {"experiment", "report"},                # the demo is a quick experiment and its report
+    "experiment": {"evaluate", "experiment_config"},  # each planned run is trained, then evaluated
+    "status": {"experiment", "experiment_config"},    # reads an experiment's plan to say where it stands
+    "experiment_config": {"evaluate"},              # an experiment's [eval] table is the eval stage's options
+}
+
+
+def stage_imports(path: Path) -> set[str]:
+    """The stage modules (trajflow_pipeline/stages/*.py) module `path` imports, by name."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    package = path.relative_to(PACKAGE.parent).with_suffix("").parts[:-1]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = list(package[:len(package) - node.level + 1]) if node.level else []
+            parts = [*base, *(node.module.split(".") if node.module else [])]
+            names = [parts + [alias.name] for alias in node.names]
+        elif isinstance(node, ast.Import):
+            names = [alias.name.split(".") for alias in node.names]
+        else:
+            continue
+        for name in names:
+            if name[:2] == ["trajflow_pipeline", "stages"] and len(name) > 2 and name[2] != "__init__":
+                found.add(name[2])
+    return found
+
+
+def test_no_module_imports_a_stage_but_its_command_and_the_stages_that_chain_it() -> None:
+    """Stages are leaves: the library packages never import one; a stage is imported by its CLI command and by
+    the stages that run it as a step (STAGE_CHAINS), nothing else."""
+    stages = {path.stem for path in (PACKAGE / "stages").glob("*.py")} - {"__init__"}
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        module = path.relative_to(PACKAGE)
+        for stage in stage_imports(path) & stages:
+            if module.parts[0] == "cli":
+                continue
+            if module.parts[0] == "stages" and stage in STAGE_CHAINS.get(path.stem, set()) | {path.stem}:
+                continue
+            found.append(f"{module} imports stages/{stage}.py")
+    assert not found, "\n".join(found)

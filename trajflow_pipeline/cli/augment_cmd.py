@@ -32,7 +32,7 @@ def augment_forking_command(
     quiet: Quiet = False,
 ) -> None:
     """Augmented Forking Paths: each future plus scaled / rotated variants of its post-fork part (same group)."""
-    from ..ingest.base import report_written
+    from .render import report_written
     from ..stages.augment import augment_forking
 
     with user_errors(ctx):
@@ -61,7 +61,7 @@ def augment_scale_rotate_command(
 
     Variants are marked train_only; evaluate on the source dataset.
     """
-    from ..ingest.base import report_written
+    from .render import report_written
     from ..stages.augment import augment_scale_rotate
 
     with user_errors(ctx):

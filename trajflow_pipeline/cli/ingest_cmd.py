@@ -10,6 +10,7 @@ import typer
 
 from ..errors import UsageError
 from .common import OutDir, Overwrite, Quiet, user_errors
+from .render import report_written
 
 ingest_app = typer.Typer(help="Turn raw datasets into the unified Parquet scene dataset.", no_args_is_help=True)
 
@@ -28,7 +29,7 @@ def ingest_eth_ucy_command(
 
     with user_errors(ctx):
         adapter = get_ingest("eth-ucy")
-        adapter.report(adapter.run(raw, out, overwrite=overwrite, quiet=quiet), quiet)
+        report_written(adapter.run(raw, out, overwrite=overwrite, quiet=quiet), quiet, adapter.summary)
 
 
 @ingest_app.command("synthetic-bimodal")
@@ -45,7 +46,8 @@ def ingest_synthetic_command(
 
     with user_errors(ctx):
         adapter = get_ingest("synthetic-bimodal")
-        adapter.report(adapter.run(None, out, samples=samples, seed=seed, overwrite=overwrite, quiet=quiet), quiet)
+        result = adapter.run(None, out, samples=samples, seed=seed, overwrite=overwrite, quiet=quiet)
+        report_written(result, quiet, adapter.summary)
 
 
 @ingest_app.command("csv")
@@ -89,7 +91,7 @@ def ingest_csv_command(
                              dataset=name, split_col=split_col, folds=folds, val_fraction=val_fraction,
                              protocol=protocol, split_by=split_by, test_fraction=test_fraction, seed=seed,
                              overwrite=overwrite, quiet=quiet)
-        adapter.report(result, quiet)
+        report_written(result, quiet, adapter.summary)
 
 
 LevelxRaw = Annotated[Path, typer.Argument(help="Folder of levelX recordings (XX_tracks.csv, XX_tracksMeta.csv, "
@@ -115,7 +117,7 @@ def _levelx(ctx: typer.Context, member: str, raw: Path, out: Path, quiet: bool, 
 
     with user_errors(ctx):
         adapter = get_ingest(member)
-        adapter.report(adapter.run(raw, out, quiet=quiet, **options), quiet)
+        report_written(adapter.run(raw, out, quiet=quiet, **options), quiet, adapter.summary)
 
 
 def _round(ctx: typer.Context, raw: Path, out: Path, recording: Optional[list[str]], geometry: Optional[Path],
@@ -129,7 +131,7 @@ def _round(ctx: typer.Context, raw: Path, out: Path, recording: Optional[list[st
         adapter = get_ingest("round")
         result = adapter.run(raw, out, recordings=recording, geometry=config, problems=problems, classes=classes,
                              stride=stride, overwrite=overwrite, quiet=quiet)
-        adapter.report(result, quiet)
+        report_written(result, quiet, adapter.summary)
 
 
 Geometry = Annotated[Optional[Path], typer.Option(
@@ -267,7 +269,7 @@ def ingest_nuscenes_command(
 
         adapter = get_ingest("nuscenes")
         result = adapter.run(dataroot, out, version=version, all_agents=all_agents, overwrite=overwrite, quiet=quiet)
-        adapter.report(result, quiet)
+        report_written(result, quiet, adapter.summary)
 
 
 @ingest_app.command("forking-paths")
@@ -297,7 +299,7 @@ def ingest_forking_paths_command(
         result = adapter.run(raw, out, camera=camera, fps=parse_per_scene("--fps", fps),
                              scale=parse_per_scene("--scale", scale), folds=folds, seed=seed, overwrite=overwrite,
                              quiet=quiet)
-        adapter.report(result, quiet)
+        report_written(result, quiet, adapter.summary)
 
 
 def parse_per_scene(option: str, text: Optional[str]) -> float | dict[str, float] | None:

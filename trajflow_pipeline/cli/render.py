@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from collections import Counter
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.table import Table
@@ -18,6 +20,17 @@ if TYPE_CHECKING:  # only for annotations: the CLI imports no stage before a com
 _STATE_STYLE = {"done": "green", "training": "bold cyan", "evaluating": "bold cyan", "continuing": "bold cyan",
                 "interrupted": "yellow", "training or interrupted": "yellow", "trained": "yellow",
                 "budget raised": "yellow", "planned": "dim", "unreadable": "bold red"}
+
+
+def report_written(out: Path, quiet: bool, line: Callable[[Path, dict[str, Any]], Text] | None = None) -> None:
+    """After an ingest or augmentation: `line` (default: ``ingest.base.wrote_line``) for the dataset at `out`,
+    from its inspect summary; nothing under --quiet."""
+    if quiet:
+        return
+    from ..ingest.base import wrote_line
+    from ..stages.inspect import summarize
+
+    say((line or wrote_line)(out, summarize(out)))
 
 
 def print_dataset_summary(summary: dict) -> None:

@@ -1,5 +1,5 @@
 """What every ingest adapter shares: the :class:`Ingest` description the registry hands out, the one channel for
-non-fatal problems (:func:`warn`) and the line printed after a dataset is written (:func:`wrote_line`)."""
+non-fatal problems (:func:`warn`) and the line the CLI prints after a dataset is written (:func:`wrote_line`)."""
 
 from __future__ import annotations
 
@@ -46,15 +46,6 @@ def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
                   f"{summary['samples']} samples, {summary['groups']} groups")
 
 
-def report_written(out: Path, quiet: bool, line: Callable[[Path, dict[str, Any]], Text] = wrote_line) -> None:
-    """Print `line` for the dataset at `out` from its inspect summary (nothing under --quiet)."""
-    if quiet:
-        return
-    from ..stages.inspect import summarize
-
-    say(line(out, summarize(out)))
-
-
 @dataclass(frozen=True)
 class Ingest:
     """One dataset's adapter: its registry name, what it writes, and how to run it.
@@ -96,7 +87,3 @@ class Ingest:
                              f"{', '.join(self.options) or 'none'}")
         args = (out,) if raw is None else (raw, out)
         return self.function(*args, overwrite=overwrite, quiet=quiet, **options)
-
-    def report(self, out: Path, quiet: bool) -> None:
-        """Print this adapter's line about the dataset written at `out` (nothing under --quiet)."""
-        report_written(out, quiet, self.summary)
