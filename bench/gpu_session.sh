@@ -41,7 +41,7 @@ run() {
         "polars", polars.__version__)' | tee "$OUT/gpu.txt"
 
     echo "== CUDA tests"
-    TRAJFLOW_DATA= python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_runtime_threads.py \
+    TRAJFLOW_DATA= python3 -m pytest -q -p no:cacheprovider tests/model/test_cuda.py tests/model/test_runtime_threads.py \
         > "$OUT/tests.txt" 2>&1 || echo "TESTS FAILED: the figures below still come"
     tail -5 "$OUT/tests.txt"
 

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
 import torch
+
+#: the tests mirror the package, a folder per package (tests/model for trajflow_pipeline/model, ...); test modules
+#: import fixture writers and fakes from other folders by module name, so every folder is on the import path
+TEST_FOLDERS = sorted(path for path in Path(__file__).resolve().parent.iterdir()
+                      if path.is_dir() and not path.name.startswith(("_", ".")))
+sys.path[:0] = [str(path) for path in TEST_FOLDERS if str(path) not in sys.path]
 
 # Tests run on 2-core CI machines: keep torch from oversubscribing them.
 torch.set_num_threads(1)

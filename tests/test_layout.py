@@ -111,3 +111,13 @@ def test_no_module_imports_a_stage_but_its_command_and_the_stages_that_chain_it(
                 continue
             found.append(f"{module} imports stages/{stage}.py")
     assert not found, "\n".join(found)
+
+
+def test_the_tests_mirror_the_package() -> None:
+    """Every folder of tests/ is named after a package of trajflow_pipeline (tests/model for model/, ...); only
+    package-wide checks (this file, the fuzz suite) and conftest.py sit at the top."""
+    tests = Path(__file__).resolve().parent
+    packages = {path.name for path in PACKAGE.iterdir() if (path / "__init__.py").exists()}
+    folders = {path.name for path in tests.iterdir() if path.is_dir() and not path.name.startswith(("_", "."))}
+    assert folders and folders <= packages, sorted(folders - packages)
+    assert {path.name for path in tests.glob("*.py")} == {"conftest.py", "test_layout.py", "test_fuzz.py"}

@@ -99,7 +99,7 @@ def test_data_spec_round_trip() -> None:
 
 
 def test_shipped_model_configs_load() -> None:
-    folder = Path(__file__).resolve().parents[1] / "configs" / "model"
+    folder = Path(__file__).resolve().parents[2] / "configs" / "model"
     files = sorted(folder.glob("*.toml"))
     assert files
     for path in files:

@@ -15,7 +15,7 @@ from trajflow_pipeline.stages.experiment import run_experiment
 from trajflow_pipeline.stages.experiment_config import INGESTS, load_experiment
 from trajflow_pipeline.stages.report import report
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "paper"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "paper"
 PAPER = sorted(p for p in CONFIGS.glob("*.toml") if not p.stem.endswith("_quick"))
 #: datasets the paper configs may point at, by the directory name they use
 KNOWN_DATA = {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths_augmented", "highd", "ind"}
@@ -133,10 +133,7 @@ def test_there_are_cpu_budget_configs() -> None:
 @pytest.mark.parametrize("member", ["highd", "ind"])
 def test_levelx_quick_configs_run_end_to_end_on_fixtures(tmp_path: Path, member: str) -> None:
     """highd_quick / ind_quick on their generated fixtures (two recordings; TrajFlow and CV only, tinier budgets)."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from levelx_fixture import write_members
+    from levelx_fixture import write_members  # tests/ingest, on the path (conftest.py)
 
     from trajflow_pipeline.ingest.registry import get_ingest
 

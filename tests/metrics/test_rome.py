@@ -311,7 +311,7 @@ def test_rome_on_the_draws_of_a_shipped_trajflow_model(eth_ucy_dataset: Path, tm
 
     from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
 
-    shipped = Path(__file__).resolve().parents[1] / "docs" / "results" / "eth_ucy" / "models" / "trajflow-eth-s0"
+    shipped = Path(__file__).resolve().parents[2] / "docs" / "results" / "eth_ucy" / "models" / "trajflow-eth-s0"
     run = Path(shutil.copytree(shipped, tmp_path / "run"))
     out = evaluate(run, data=eth_ucy_dataset, options=EvalOptions(metrics=("min_ade",), workers=1), quiet=True)
     draws = pl.read_parquet(out / "predictions.parquet").sort("sample_id", "draw", "step")

@@ -34,13 +34,16 @@ from trajflow_pipeline.util.scheduler import RayPool  # noqa: E402
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="run claims need POSIX file locks")
 
-TESTS = Path(__file__).parent
+TESTS = Path(__file__).resolve().parents[1]
+REPO = TESTS.parent
+#: the folders of tests/ (conftest.py puts them on this process's path; Ray's workers get them through PYTHONPATH)
+TEST_FOLDERS = [str(path) for path in sorted(TESTS.iterdir()) if path.is_dir() and not path.name.startswith(("_", "."))]
 
 
 @pytest.fixture(scope="module", autouse=True)
 def ray_instance() -> Iterator[None]:
     """One local Ray instance for the module; its workers can import this module's task functions."""
-    path = os.pathsep.join(p for p in (str(TESTS), os.environ.get("PYTHONPATH", "")) if p)
+    path = os.pathsep.join(p for p in (*TEST_FOLDERS, os.environ.get("PYTHONPATH", "")) if p)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
              runtime_env={"env_vars": {"PYTHONPATH": path}})
     yield
@@ -186,6 +189,6 @@ def test_without_ray_an_experiment_does_not_import_it(tmp_path: Path) -> None:
              "assert result.exit_code == 0, result.output\nprint('ray' in sys.modules)\n")
     child = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300,
                            env={**os.environ, "PYTHONPATH": os.pathsep.join(
-                               p for p in (str(TESTS.parent), os.environ.get("PYTHONPATH", "")) if p)})
+                               p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)})
     assert child.returncode == 0, child.stderr
     assert child.stdout.strip().splitlines()[-1] == "False"

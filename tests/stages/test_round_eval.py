@@ -32,7 +32,7 @@ from trajflow_pipeline.training import train
 RECORDINGS = 4
 TINY = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", "train.flow_max_epochs=2", "train.flow_min_epochs=1",
         "model.flow_layers=2", "model.flow_hidden=[16, 16]"]
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "paper"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "paper"
 
 
 @pytest.fixture(scope="module")
