@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "ingest"))
 from levelx_fixture import FRAME_RATE, highway_vehicle, write_highd_recording  # noqa: E402
 
 #: a vehicle enters every this many seconds per lane on average

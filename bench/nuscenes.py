@@ -27,7 +27,7 @@ from queue import Empty
 # this script is called nuscenes.py: keep its folder off the path so that `import nuscenes` finds the devkit
 HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
-sys.path.insert(0, str(HERE.parent / "tests"))
+sys.path.insert(0, str(HERE.parent / "tests" / "ingest"))
 
 from nuscenes_fixture import (MapRects, challenge_every, city_shapes, large_scenes,  # noqa: E402
                               write_expansion, write_release)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "ingest"))
 from test_round_synth import (ARMS_DEG, Track, crossing_path, drive, vehicle_path,  # noqa: E402
                               write_recording)
 
