@@ -23,10 +23,9 @@ from .folds import ceiled_share, fold_arrays
 from .levelx import (FILE_KINDS, ROUND, Recording, RecordingMeta, discover_recordings, read_raw_tracks,
                      read_recording_meta, read_tracks_meta)
 from .levelx_pipeline import (ALL_AGENTS, DEFAULT_CLASSES, MOTOR_CLASSES, STRIDE, Horizons, background_map,
-                              check_problems, ingest_levelx, parse_classes, resample)
+                              check_problems, ingest_levelx, input_keys, parse_classes, resample)
 from .levelx_pipeline import wrote_line as all_agents_line
 from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
-from .windows import GROUP_TOLERANCE_M, _window_hashes
 
 DATASET = "round"
 #: the --problems value of the scenario below (the default); "all-agents" is the other
@@ -242,20 +241,6 @@ def situation_samples(situations: pl.DataFrame, scene_id: str) -> pl.DataFrame:
             .with_columns(n_past=pl.lit(N_PAST, dtype=pl.Int64), n_future=pl.lit(N_FUTURE, dtype=pl.Int64)))
 
 
-def input_keys(samples: pl.DataFrame, tracks: pl.DataFrame) -> pl.Series:
-    """Per sample a hash of its inputs (target window and the windows of everyone present at t0), exactly as
-    :func:`windows.identical_input_groups` keys them, so group ids can be assigned across recordings later."""
-    windows = _window_hashes(tracks, N_PAST, GROUP_TOLERANCE_M)
-    context = (windows.group_by("scene_id", "frame").agg(pl.col("window_hash").sort().alias("context"))
-               .select("scene_id", "frame", pl.col("context").hash(seed=1).alias("context_hash")))
-    return (samples.select("scene_id", "agent_id", "t0_frame").with_row_index("__order")
-            .join(windows, left_on=["scene_id", "agent_id", "t0_frame"], right_on=["scene_id", "agent_id", "frame"],
-                  how="left")
-            .join(context, left_on=["scene_id", "t0_frame"], right_on=["scene_id", "frame"], how="left")
-            .sort("__order")
-            .select(pl.struct("window_hash", "context_hash").hash(seed=2).alias("input_key")).to_series())
-
-
 # ------------------------------------------------------------------------------------------------ folds, groups
 
 
@@ -329,7 +314,7 @@ def ingest_recording(recording: Recording, root: Path, geometry: GeometryConfig 
     step("groups")
     if situations is not None and situations.height:
         samples = situation_samples(situations, recording.scene_id)
-        samples = samples.with_columns(input_key=input_keys(samples, tracks))
+        samples = samples.with_columns(input_key=input_keys(samples, tracks, N_PAST))
     else:
         samples = pl.DataFrame()
     step("done")
