@@ -4,15 +4,15 @@ non-fatal problems (:func:`warn`) and the line the CLI prints after a dataset is
 from __future__ import annotations
 
 import contextlib
-import inspect
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rich.text import Text
 
 from ..errors import UsageError
+from ..util.options import REQUIRED, keyword_options, option_value
 from ..util.progress import say, styled
 
 
@@ -67,13 +67,40 @@ class Ingest:
     function: Callable[..., Path]
     #: the line printed after the dataset is written
     summary: Callable[[Path, dict[str, Any]], Text] = wrote_line
+    #: option -> how a plain config value (TOML: string, number, list, table) becomes the argument `function`
+    #: takes, for options whose type is not plain (the CSV column mapping, rounD's geometry)
+    converters: Mapping[str, Callable[[Any], Any]] = field(default_factory=dict)
+    #: the files of the raw input the ingest reads, given the raw path and the options (None: every file under
+    #: it); what an experiment's data stage hashes to tell whether the raw input changed
+    inputs: Callable[[Path, dict[str, Any]], list[Path]] | None = None
+    #: whether its samples come in groups of several futures of one input (None: that depends on the data), which
+    #: `augment forking` needs
+    multi_future: bool | None = False
 
     @property
     def options(self) -> dict[str, Any]:
         """The keyword options of `function` (besides overwrite and quiet) with their defaults."""
-        parameters = inspect.signature(self.function).parameters.values()
-        return {p.name: p.default for p in parameters
-                if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in ("overwrite", "quiet")}
+        return keyword_options(self.function)
+
+    def config_options(self, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Options given as plain config values (an experiment's [data] table) as `function` takes them: unknown
+        names refused, converters applied, numbers and strings made of their default's type (samples = 3000.0 ->
+        3000). Every problem is a UsageError starting with `where` (the config file) and naming the key."""
+        unknown = sorted(set(values) - set(self.options))
+        if unknown:
+            raise UsageError(f"{where}: unknown key(s) {', '.join(unknown)} in [data]: ingest {self.name} takes "
+                             f"{', '.join(self.options) or 'no options'}")
+        missing = [key for key, default in self.options.items() if default is REQUIRED and key not in values]
+        if missing:
+            raise UsageError(f"{where}: ingest {self.name} needs [data] {', '.join(missing)}")
+        converted = {}
+        for key, value in values.items():
+            try:
+                converted[key] = (self.converters[key](value) if key in self.converters
+                                  else option_value(self.function, key, value))
+            except UsageError as error:
+                raise UsageError(f"{where}: [data] {key} {error}") from None
+        return converted
 
     def run(self, raw: str | Path | None, out: str | Path, *, overwrite: bool = False, quiet: bool = False,
             **options: Any) -> Path:

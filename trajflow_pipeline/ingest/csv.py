@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -62,6 +63,16 @@ class ColumnMap:
         if "time" in values and "frame" not in values:
             values["frame"] = None
         return cls(**values)
+
+    @classmethod
+    def from_config(cls, value: Any) -> "ColumnMap":
+        """The mapping as an experiment config gives it: a table {role = "column", ...} or the `role=column,...`
+        string of --columns."""
+        if isinstance(value, str):
+            return cls.parse(value)
+        if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+            raise UsageError(f"must be a table of role = \"column\" (roles {', '.join(ROLES)}), got {value!r}")
+        return cls.parse(",".join(f"{role}={column}" for role, column in value.items()))
 
     def required(self) -> dict[str, str]:
         """role -> column of the roles every row must fill (the type column may be empty: unknown)."""
@@ -467,4 +478,5 @@ def ingest_csv(file: str | Path, out: str | Path, *, dt: float, columns: ColumnM
     return out
 
 
-ADAPTER = Ingest(name="csv", dataset=None, dt=None, folds=None, raw="a CSV or Parquet file", function=ingest_csv)
+ADAPTER = Ingest(name="csv", dataset=None, dt=None, folds=None, raw="a CSV or Parquet file", function=ingest_csv,
+                 converters={"columns": ColumnMap.from_config}, multi_future=None)

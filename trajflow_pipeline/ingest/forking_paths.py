@@ -554,5 +554,10 @@ def ingest_forking_paths(raw: str | Path, out: str | Path, *, camera: str = DEFA
     return out
 
 
+def read_files(raw: Path, options: dict[str, Any]) -> list[Path]:
+    """The annotation files an ingest of `raw` with `options` reads (the camera's; the videos are not read)."""
+    return [item.path for item in discover_files(find_bbox_folder(raw), options.get("camera", DEFAULT_CAMERA))]
+
+
 ADAPTER = Ingest(name="forking-paths", dataset=DATASET, dt=DT, folds=None, raw="the Forking Paths release",
-                 function=ingest_forking_paths)
+                 function=ingest_forking_paths, inputs=read_files, multi_future=True)

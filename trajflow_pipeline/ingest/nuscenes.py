@@ -555,5 +555,13 @@ def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
                   f"{summary['samples']} samples ({splits}), {summary['groups']} groups, {maps}")
 
 
+def read_files(dataroot: Path, options: dict[str, Any]) -> list[Path]:
+    """The files an ingest of `dataroot` reads: the version's tables and maps/ (not the sensor data: samples/,
+    sweeps/, which are most of a release's bytes)."""
+    version = options.get("version", "v1.0-mini")
+    return sorted(p for folder in (dataroot / version, dataroot / "maps") if folder.is_dir()
+                  for p in folder.rglob("*") if p.is_file())
+
+
 ADAPTER = Ingest(name="nuscenes", dataset=DATASET, dt=DT, folds=None, raw="the nuScenes root (DATAROOT)",
-                 function=ingest_nuscenes, summary=wrote_line)
+                 function=ingest_nuscenes, summary=wrote_line, inputs=read_files)

@@ -25,7 +25,8 @@ from .levelx import (FILE_KINDS, ROUND, Recording, RecordingMeta, discover_recor
 from .levelx_pipeline import (ALL_AGENTS, DEFAULT_CLASSES, MOTOR_CLASSES, STRIDE, Horizons, background_map,
                               check_problems, ingest_levelx, input_keys, parse_classes, resample)
 from .levelx_pipeline import wrote_line as all_agents_line
-from .round_geometry import GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, infer_geometry
+from .round_geometry import (GeometryConfig, GeometryError, RoundaboutGeometry, geometry_for, geometry_option,
+                             infer_geometry)
 
 DATASET = "round"
 #: the --problems value of the scenario below (the default); "all-agents" is the other
@@ -396,4 +397,5 @@ def wrote_line(out: Path, summary: dict[str, Any]) -> Text:
 
 
 ADAPTER = Ingest(name="round", dataset=DATASET, dt=DT, folds=tuple(str(fold) for fold in range(FOLDS)),
-                 raw="the folder of levelX rounD recordings", function=ingest_round, summary=wrote_line)
+                 raw="the folder of levelX rounD recordings", function=ingest_round, summary=wrote_line,
+                 converters={"geometry": geometry_option})

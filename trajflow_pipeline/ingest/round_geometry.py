@@ -127,20 +127,33 @@ def load_geometry_file(path: str | Path) -> GeometryConfig:
         raise UsageError(f"{path}: cannot read geometry file ({error.strerror})") from None
     except json.JSONDecodeError as error:
         raise UsageError(f"{path}:{error.lineno}: not valid JSON ({error.msg})") from None
+    return parse_geometry(data, str(path))
+
+
+def parse_geometry(data: Any, where: str) -> GeometryConfig:
+    """One geometry object, or an object mapping locationId -> geometry object (as a JSON file or a config table
+    holds them); `where` names the source in errors."""
     if not isinstance(data, dict):
-        raise UsageError(f"{path}: expected a JSON object")
+        raise UsageError(f"{where}: expected a JSON object")
     if "centre" in data or "centre_x" in data:
-        return RoundaboutGeometry.from_dict(data, where=str(path))
+        return RoundaboutGeometry.from_dict(data, where=where)
     result: dict[int, RoundaboutGeometry] = {}
     for key, value in data.items():
         try:
             location = int(key)
         except ValueError:
-            raise UsageError(f"{path}: keys must be locationIds (integers), got {key!r}") from None
+            raise UsageError(f"{where}: keys must be locationIds (integers), got {key!r}") from None
         if not isinstance(value, dict):
-            raise UsageError(f"{path}: geometry of location {key} must be an object")
-        result[location] = RoundaboutGeometry.from_dict(value, where=f"{path} (location {key})")
+            raise UsageError(f"{where}: geometry of location {key} must be an object")
+        result[location] = RoundaboutGeometry.from_dict(value, where=f"{where} (location {key})")
     return result
+
+
+def geometry_option(value: Any) -> GeometryConfig:
+    """rounD's `geometry` option as a config gives it: the path of a JSON geometry file, or the object itself."""
+    if isinstance(value, str):
+        return load_geometry_file(value)
+    return parse_geometry(value, "the geometry table")
 
 
 def _wrap(angle: pl.Expr) -> pl.Expr:

@@ -103,4 +103,4 @@ def ingest_synthetic_bimodal(out: str | Path, *, samples: int = 3000, seed: int 
 
 
 ADAPTER = Ingest(name="synthetic-bimodal", dataset=DATASET, dt=DT, folds=None, raw=None,
-                 function=ingest_synthetic_bimodal)
+                 function=ingest_synthetic_bimodal, multi_future=True)

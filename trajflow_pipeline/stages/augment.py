@@ -66,10 +66,13 @@ class Kind:
     whole_window: bool  # transform every agent over the whole window (else the target after t0 only)
     new_groups: bool  # variants get fresh group ids (their inputs differ)
     train_only: bool  # variants are training data only
+    needs_groups: bool  # the source must hold groups of several futures of one input (multi-future data)
 
 
-FORKING = Kind("forking", "fork", "forking_aug", whole_window=False, new_groups=False, train_only=False)
-SCALE_ROTATE = Kind("scale-rotate", "aug", "scale_rotate", whole_window=True, new_groups=True, train_only=True)
+FORKING = Kind("forking", "fork", "forking_aug", whole_window=False, new_groups=False, train_only=False,
+               needs_groups=True)
+SCALE_ROTATE = Kind("scale-rotate", "aug", "scale_rotate", whole_window=True, new_groups=True, train_only=True,
+                    needs_groups=False)
 
 
 @dataclass(frozen=True)
@@ -430,3 +433,7 @@ def augment_scale_rotate(data: str | Path, out: str | Path, *, copies: int = 10,
     return _augment(data, out, SCALE_ROTATE, select,
                     lambda n: draw_scale_rotate(n, copies, rot_std_deg, scale_std, seed),
                     parameters, copies, seed, overwrite, quiet)
+
+
+#: the augmentations by the name `trajflow augment` and an experiment config's ``[[augment]] kind`` use
+AUGMENTATIONS = {FORKING.name: (FORKING, augment_forking), SCALE_ROTATE.name: (SCALE_ROTATE, augment_scale_rotate)}
