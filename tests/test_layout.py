@@ -71,9 +71,13 @@ def test_the_cli_starts_without_torch() -> None:
 #: stage -> the stages it chains (runs as a step of its own work); no other module imports a stage
 STAGE_CHAINS = {
     "demo": {"experiment", "report"},                # the demo is a quick experiment and its report
-    "experiment": {"evaluate", "experiment_config"},  # each planned run is trained, then evaluated
-    "status": {"experiment", "experiment_config"},    # reads an experiment's plan to say where it stands
-    "experiment_config": {"evaluate"},              # an experiment's [eval] table is the eval stage's options
+    # the data stages are built, each planned run is trained, then evaluated, and the report ends it
+    "experiment": {"data_stages", "evaluate", "experiment_config", "report"},
+    "data_stages": {"augment", "experiment_config"},  # an experiment's [[augment]] steps run the augment stage
+    # reads an experiment's plan and data stages to say where they stand
+    "status": {"data_stages", "experiment", "experiment_config"},
+    # an experiment's [eval] table is the eval stage's options, its [[augment]] steps the augment stage's
+    "experiment_config": {"augment", "evaluate"},
 }
 
 

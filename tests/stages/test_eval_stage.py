@@ -252,7 +252,8 @@ def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stoppe
     assert (out / "config.toml").read_text() == raised.read_text()
     lowered = tmp_path / "lowered.toml"
     lowered.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=1"'))
-    with pytest.raises(UsageError, match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets may be raised"):
+    with pytest.raises(UsageError,
+                       match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets and the data stages may change"):
         run_experiment(lowered, out, quiet=True)
 
 

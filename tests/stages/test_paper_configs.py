@@ -18,7 +18,8 @@ from trajflow_pipeline.stages.report import report
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "paper"
 PAPER = sorted(p for p in CONFIGS.glob("*.toml") if not p.stem.endswith("_quick"))
 #: datasets the paper configs may point at, by the directory name they use
-KNOWN_DATA = {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "forking_paths_augmented", "highd", "ind"}
+KNOWN_DATA = {"synthetic_bimodal", "eth_ucy", "round", "nuscenes", "nuscenes_mini", "forking_paths_augmented", "highd",
+              "ind"}
 
 
 def test_every_paper_config_has_a_quick_variant() -> None:
@@ -33,9 +34,18 @@ def test_config_parses_and_references_what_exists(path: Path) -> None:
     config = load_experiment(path)
     assert set(config.models) <= set(MODEL_NAMES) and "trajflow" in config.models and "cv" in config.models
     assert config.data_path.name in KNOWN_DATA
-    assert config.ingest is None or config.ingest in INGESTS
+    # runnable from raw files with one command: the config builds its data (raw pointed at with --set data.raw=)
+    assert config.ingest in INGESTS
     if not path.stem.endswith("_quick"):
         assert not config.train_overrides, "paper configs train with the paper's budgets (the defaults)"
+
+
+def test_the_forking_paths_configs_ingest_then_augment_as_the_paper() -> None:
+    for name in ("forking_paths", "forking_paths_quick"):
+        config = load_experiment(CONFIGS / f"{name}.toml")
+        assert config.ingest == "forking-paths"
+        assert [(step.kind, step.options["copies"]) for step in config.augment] == [("forking", 100)]
+        assert config.data_path == config.augment[-1].path != config.source_path
 
 
 def test_paper_seed_and_fold_protocols() -> None:
@@ -135,16 +145,40 @@ def test_levelx_quick_configs_run_end_to_end_on_fixtures(tmp_path: Path, member:
     """highd_quick / ind_quick on their generated fixtures (two recordings; TrajFlow and CV only, tinier budgets)."""
     from levelx_fixture import write_members  # tests/ingest, on the path (conftest.py)
 
-    from trajflow_pipeline.ingest.registry import get_ingest
-
-    data = get_ingest(member).run(write_members(tmp_path / "raw", member, 2), tmp_path / "data", quiet=True)
-    text = (CONFIGS / f"{member}_quick.toml").read_text().replace(f'path = "data/{member}"', f'path = "{data.as_posix()}"')
+    raw = write_members(tmp_path / "raw", member, 2)
+    text = (CONFIGS / f"{member}_quick.toml").read_text()
     text = text.replace('models = ["trajflow", "trajflow-no-ae", "flomo", "cv"]', 'models = ["trajflow", "cv"]')
     text = re.sub(r"\[train\]\nset = \[[^\]]*\]", '[train]\nset = ["train.ae_max_epochs=1", "train.ae_min_epochs=1", '
                   '"train.flow_max_epochs=1", "train.flow_min_epochs=1", "model.flow_layers=2"]', text)
     text = text.replace("samples = 30", "samples = 5").replace("k = 20", "k = 3\nworkers = 1")
     config = tmp_path / "quick.toml"
     config.write_text(text)
-    experiment = run_experiment(config, tmp_path / "exp", quiet=True)
+    # from the raw recordings: the config's ingest, pointed at them from the command line
+    overrides = [f"data.raw={raw.as_posix()}", f"data.path={(tmp_path / 'data').as_posix()}"]
+    experiment = run_experiment(config, tmp_path / "exp", quiet=True, overrides=overrides, report=False)
     runs = json.loads((experiment / "experiment.json").read_text())["runs"]
     assert len(runs) == 2
+
+
+def test_forking_paths_quick_runs_from_the_raw_release_through_ingest_and_augmentation(tmp_path: Path) -> None:
+    """forking_paths_quick from a generated release (the real file format): ingest, augment (fewer copies), TrajFlow
+    and CV at tinier budgets; the data stages' records say what was built from what."""
+    from test_forking_fixture import write_release  # tests/ingest, on the path (conftest.py)
+
+    from trajflow_pipeline.schemas.stage_record import read_stage_record
+
+    write_release(tmp_path / "raw")
+    overrides = [f"data.raw={(tmp_path / 'raw').as_posix()}", f"data.path={(tmp_path / 'fp').as_posix()}",
+                 f"augment.0.path={(tmp_path / 'fp_aug').as_posix()}", "augment.0.copies=5",
+                 'protocol.models=["trajflow", "cv"]',
+                 'train.set=["train.ae_max_epochs=1", "train.ae_min_epochs=1", "train.flow_max_epochs=1", '
+                 '"train.flow_min_epochs=1", "model.flow_layers=2"]', "eval.samples=5", "eval.k=3", "eval.workers=1"]
+    experiment = run_experiment(CONFIGS / "forking_paths_quick.toml", tmp_path / "exp", quiet=True,
+                                overrides=overrides, report=False)
+    assert len(json.loads((experiment / "experiment.json").read_text())["runs"]) == 2
+    ingest, augmented = read_stage_record(tmp_path / "fp"), read_stage_record(tmp_path / "fp_aug")
+    assert ingest is not None and augmented is not None
+    assert (ingest.kind, ingest.name) == ("ingest", "forking-paths")
+    assert (augmented.kind, augmented.name) == ("augment", "forking")
+    assert augmented.upstream == ingest.output and augmented.options["copies"] == 5
+    assert ingest.inputs and all(entry["path"].endswith("_cam4.json") for entry in ingest.inputs)  # what it reads

@@ -32,17 +32,26 @@ def experiment_command(
     cpus_per_run: Annotated[int, typer.Option(
         "--cpus-per-run", min=1, help="With --ray: CPUs each run asks for (its torch threads and ROME workers).")
     ] = 1,
+    set_: Annotated[Optional[list[str]], typer.Option(
+        "--set", metavar="KEY=VALUE", help=(
+            "Override a value of the config file, repeatable: a dotted key into its tables and a TOML value, e.g. "
+            "--set data.raw=/data/eth_ucy (so nobody edits a committed config to point at their data), "
+            "--set augment.0.copies=50 (the first [[augment]] step)."))] = None,
+    no_report: Annotated[bool, typer.Option(
+        "--no-report", help="Do not write the report (OUT/report) at the end.")] = False,
     quiet: Quiet = False,
 ) -> None:
-    """Train and evaluate every model x fold x seed of a protocol; resumable, metrics collected in OUT."""
-    from ..stages.experiment import experiment_complete, run_experiment
+    """Build the data stages that changed, train and evaluate every model x fold x seed, write the report; resumable."""
+    from ..stages.experiment import REPORT_DIR, experiment_complete, run_experiment
 
     with user_errors(ctx):
         result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs, only=only or (), ray=ray,
-                                cpus_per_run=cpus_per_run)
+                                cpus_per_run=cpus_per_run, overrides=set_ or (), report=not no_report)
         done = experiment_complete(result)
     if not quiet and done:
-        say(f"experiment done: {result} (make a report with `trajflow report {result} -o REPORT`)", out=stdout)
+        where = (f"report: {result / REPORT_DIR / 'report.html'}" if not no_report
+                 else f"make a report with `trajflow report {result} -o REPORT`")
+        say(f"experiment done: {result} ({where})", out=stdout)
 
 
 def demo_command(

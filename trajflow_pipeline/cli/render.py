@@ -19,7 +19,10 @@ if TYPE_CHECKING:  # only for annotations: the CLI imports no stage before a com
 #: how each state is shown
 _STATE_STYLE = {"done": "green", "training": "bold cyan", "evaluating": "bold cyan", "continuing": "bold cyan",
                 "interrupted": "yellow", "training or interrupted": "yellow", "trained": "yellow",
-                "budget raised": "yellow", "planned": "dim", "unreadable": "bold red"}
+                "budget raised": "yellow", "planned": "dim", "unreadable": "bold red", "data changed": "yellow"}
+#: how each data stage state (stages/data_stages.py) is shown
+_DATA_STYLE = {"reused": "green", "given": "green", "built": "green", "stale": "yellow", "missing": "yellow",
+               "unknown": "bold red"}
 
 
 def report_written(out: Path, quiet: bool, line: Callable[[Path, dict[str, Any]], Text] | None = None) -> None:
@@ -67,7 +70,17 @@ def print_metric_means(title: str, means: dict[str, float]) -> None:
 
 
 def print_status(status: ExperimentStatus, out: Console) -> None:
-    """The status as a rich table and a summary line."""
+    """The status as rich tables (the data stages, the runs) and a summary line."""
+    if status.data:
+        stages = Table(title="data stages")
+        for column in ("stage", "dataset", "state", "builds", "why"):
+            stages.add_column(column, justify="right" if column == "builds" else "left")
+        for stage in status.data:
+            state = "current" if stage.state == "reused" else stage.state
+            stages.add_row(stage.stage.label, str(stage.stage.path),
+                           Text(state, style=_DATA_STYLE.get(stage.state, "")),
+                           str(stage.record.builds) if stage.record else "", stage.reason)
+        out.print(stages)
     table = Table(title=f"{status.kind} {status.name}  ({status.path})")
     table.add_column("run", no_wrap=True)
     table.add_column("state")

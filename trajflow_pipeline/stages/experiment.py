@@ -1,6 +1,9 @@
-"""`trajflow experiment CONFIG -o EXP`: train + eval every (model, fold, seed) of a dataset protocol, resumably.
+"""`trajflow experiment CONFIG -o EXP`: from raw files to the report: build the data stages, train + eval every
+(model, fold, seed) of a dataset protocol, resumably, and write ``EXP/report``.
 
-The config file: :mod:`trajflow_pipeline.stages.experiment_config`.
+The config file: :mod:`trajflow_pipeline.stages.experiment_config`; its data stages (an ingest, augmentations),
+each built only when its options or inputs changed: :mod:`trajflow_pipeline.stages.data_stages`. A run trained on
+data that a stage has changed since is moved to ``EXP/superseded/`` and trained again.
 
 Runs land in ``EXP/runs/<model>-<fold>-s<seed>/``. Re-running the same command skips finished runs and resumes an
 interrupted training from its last checkpoint, so an interrupted experiment never repeats finished work. The
@@ -32,6 +35,8 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import os
+import shutil
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future, as_completed
 from dataclasses import dataclass, replace
@@ -42,12 +47,12 @@ import polars as pl
 
 from ..data import list_folds
 from ..errors import TrajflowError, UsageError
-from ..ingest.registry import get_ingest
 from ..metrics.parallel import resolve_workers
 from ..model.config import RunConfig, load_config
 from ..model.models import MODEL_CLASSES
-from ..rundir import CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, read_run_config
-from ..schemas import open_dataset
+from ..rundir import (CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, read_run_config,
+                      read_run_info)
+from ..schemas import data_mismatch, open_dataset
 from ..training import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
 from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
@@ -55,28 +60,17 @@ from ..util.claim import claim, claims_supported
 from ..util.progress import say
 from ..util.scheduler import LocalPool, RayPool, Resources, cluster_resources, one_line
 from .evaluate import EvalOptions, evaluate
-from .experiment_config import ExperimentConfig, load_experiment, option_value
+from .data_stages import build_data
+from .experiment_config import (SAVED_CONFIG, ExperimentConfig, load_experiment, load_saved_experiment,
+                                save_experiment_config, saved_overrides)
+from .report import report as make_report
 
 #: the experiment's index: the runs planned and finished, the data and the config
 INDEX_FILE = "experiment.json"
 #: times Ray runs a run again whose worker died (each time it resumes from the run's last checkpoint)
 RAY_RETRIES = 3
-
-
-def _ensure_data(config: ExperimentConfig, quiet: bool) -> Path:
-    """The dataset directory, ingested first when missing and the config says how."""
-    if (config.data_path / "dataset.json").exists():
-        return config.data_path
-    if config.ingest is None:
-        raise TrajflowError(f"{config.data_path}: dataset not found and the experiment config names no ingest")
-    adapter = get_ingest(config.ingest)
-    options = dict(config.ingest_options)
-    raw = options.pop("raw", None)
-    if adapter.raw is not None and raw is None:
-        raise UsageError(f"[data] ingest = {adapter.name!r} needs raw = {adapter.raw}")
-    defaults = adapter.options
-    return adapter.run(None if raw is None else Path(raw), config.data_path, quiet=quiet,
-                       **{key: option_value(defaults[key], value, key) for key, value in options.items()})
+#: in the experiment directory: the report written when the experiment ends, and runs trained on data since changed
+REPORT_DIR, SUPERSEDED_DIR = "report", "superseded"
 
 
 def _folds(config: ExperimentConfig, data: Path) -> list[str | None]:
@@ -105,11 +99,13 @@ def experiment_complete(out: str | Path) -> bool:
 
 
 def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False,
-                   jobs: int = 1, only: Sequence[str] = (), ray: str | None = None, cpus_per_run: int = 1) -> Path:
-    """Train and evaluate every run of the experiment into `out` (resuming what an earlier call left), with `jobs`
-    worker processes, or as tasks of `cpus_per_run` CPUs on the Ray cluster at `ray`; with `only` (run-name
-    patterns), just the runs that match. Runs that another process is working on are left to it (see the module
-    docstring)."""
+                   jobs: int = 1, only: Sequence[str] = (), ray: str | None = None, cpus_per_run: int = 1,
+                   overrides: Sequence[str] = (), report: bool = True) -> Path:
+    """Build the data stages that are not current, then train and evaluate every run of the experiment into `out`
+    (resuming what an earlier call left), with `jobs` worker processes, or as tasks of `cpus_per_run` CPUs on the
+    Ray cluster at `ray`; with `only` (run-name patterns), just the runs that match; then write the report into
+    ``out/report`` (unless not `report`). `overrides` (``KEY=VALUE``) apply on top of the config file. Runs that
+    another process is working on are left to it (see the module docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     if jobs > 1 and not claims_supported():
@@ -119,30 +115,32 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
                          "room for (--cpus-per-run sets a run's share)")
     if cpus_per_run < 1:
         raise UsageError(f"--cpus-per-run must be at least 1, got {cpus_per_run}")
-    config = load_experiment(config_path)
+    overrides = list(overrides)
+    config = load_experiment(config_path, overrides, check_inputs=True)
     out = Path(out)
     text = input_files.read_text(config_path)
-    changed = (out / "config.toml").exists() and input_files.read_text(out / "config.toml") != text
+    changed = (out / SAVED_CONFIG).exists() and (input_files.read_text(out / SAVED_CONFIG) != text
+                                                 or saved_overrides(out) != overrides)
     if changed:
-        _check_budgets_only(out / "config.toml", config, quiet)
-    data = _ensure_data(config, quiet)
-    open_dataset(data)
+        _check_budgets_only(out, config, quiet)
+    build_data(config, quiet=quiet)
+    data = config.data_path
     plan = _plan(config, data)
     if changed:  # every run must be able to follow the raised budgets before anything changes
         blockers = [b for model, fold, seed in plan
-                    if (b := raise_blocker(run_dir := out / "runs" / run_name(model, fold, seed),
-                                           run_overrides(config, model, run_dir)))]
+                    if not trained_on_other_data(run_dir := out / "runs" / run_name(model, fold, seed), data)
+                    and (b := raise_blocker(run_dir, run_overrides(config, model, run_dir)))]
         if blockers:
             raise UsageError("cannot raise the budgets of this experiment: " + "; ".join(blockers)
                              + ". Use a new -o for the larger budget")
     selected = select_runs(plan, only)
-    left = sum(not run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name))
+    left = sum(not run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name), data)
                for model, fold, seed in plan if (name := run_name(model, fold, seed)) in selected)
     # Workers beyond the runs left to do would only idle while holding their share of the threads.
     jobs = max(1, min(jobs, left))
     pool = _ray_pool(ray, device, cpus_per_run) if ray is not None and left else None
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.toml", text)
+    save_experiment_config(out, text, overrides)
     if pool is not None:
         if not quiet:
             say(f"Ray cluster {ray}: each run a task of {cpus_per_run} CPU(s)"
@@ -154,14 +152,16 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     else:
         _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs, selected=selected)
     _write_index(out, config, data, plan)
-    unfinished = [run_name(*key) for key in plan
-                  if not run_done(run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir))]
+    unfinished = [run_name(*key) for key in plan if not run_done(
+        run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir), data)]
     elsewhere = [name for name in unfinished if name in selected]
     if elsewhere and not quiet:
         say((f"{len(elsewhere)} run(s) are still in progress in another process", "yellow"),
             f" ({', '.join(elsewhere)}); the index includes them once they finish")
     if len(elsewhere) < len(unfinished) and not quiet:
         say(f"{len(unfinished) - len(elsewhere)} unfinished run(s) were not selected by --only")
+    if report and len(unfinished) < len(plan):
+        make_report([out], out / REPORT_DIR, quiet=quiet)
     return out
 
 
@@ -181,19 +181,21 @@ def select_runs(plan: list[tuple[str, str | None, int]], only: Sequence[str]) ->
     return frozenset(name for name in names if any(fnmatch.fnmatchcase(name, pattern) for pattern in only))
 
 
-def _check_budgets_only(saved_path: Path, config: ExperimentConfig, quiet: bool) -> None:
-    """Accept a config that differs from the one the experiment was made with (`saved_path`) only by raised epoch
-    budgets (and comments, name or description); anything else would mix settings in one directory."""
+def _check_budgets_only(out: Path, config: ExperimentConfig, quiet: bool) -> None:
+    """Accept a config that differs from the one the experiment in `out` was made with only by raised epoch
+    budgets, its data stages (their changes rebuild what they change, and the runs trained on other data are
+    trained again) and comments, name or description; anything else would mix settings in one directory."""
     def different(what: str) -> UsageError:
-        return UsageError(f"{saved_path.parent}: this experiment directory was made with a different config "
-                          f"({saved_path}; {what}); resuming would mix settings (only epoch budgets may be raised). "
-                          f"Use a new -o, or delete it")
+        return UsageError(f"{out}: this experiment directory was made with a different config "
+                          f"({out / SAVED_CONFIG}; {what}); resuming would mix settings (only epoch budgets and the "
+                          f"data stages may change). Use a new -o, or delete it")
 
     try:
-        saved = load_experiment(saved_path)
+        saved = load_saved_experiment(out)
     except UsageError as error:
         raise different(str(error)) from None
-    protocol = {"name": "", "train_overrides": (), "model_overrides": {}, "source": {}}
+    protocol = {"name": "", "train_overrides": (), "model_overrides": {}, "source": {}, "file": Path(),
+                "data_path": Path(), "ingest": None, "ingest_options": {}, "augment": ()}
     before, after = vars(replace(saved, **protocol)), vars(replace(config, **protocol))
     for key in before:
         if before[key] != after[key]:
@@ -253,12 +255,35 @@ def plan_order(models: list[str], folds: list[str | None], seeds: list[int]) -> 
     return [(m, f, s) for m in ordered for f in folds for s in seeds]
 
 
-def run_done(run_dir: Path, overrides: list[str]) -> bool:
-    """Finished (see `rundir.is_evaluated`) with the config the experiment now gives it (its budgets were not raised)."""
-    if not is_evaluated(run_dir):
+def run_done(run_dir: Path, overrides: list[str], data: Path | None = None) -> bool:
+    """Finished (see `rundir.is_evaluated`) with the config the experiment now gives it (its budgets were not raised)
+    and, when `data` is given, on that dataset as it is now."""
+    if not is_evaluated(run_dir) or (data is not None and trained_on_other_data(run_dir, data)):
         return False
     saved = read_run_config(run_dir)
     return saved is None or load_config(overrides=overrides, base=saved) == saved
+
+
+def trained_on_other_data(run_dir: Path, data: Path) -> str | None:
+    """How the data the run in `run_dir` was trained on differs from the dataset `data` as it is now (None: the
+    same, or nothing trained there yet): after a data stage changed, its runs are trained again."""
+    recorded = (read_run_info(run_dir) or {}).get("fingerprint")
+    if not isinstance(recorded, dict) or not recorded:
+        return None
+    return data_mismatch(recorded, open_dataset(data).fingerprint())
+
+
+def _set_aside(run_dir: Path, out: Path, quiet: bool) -> None:
+    """Move a run trained on other data to ``out/superseded/<run>`` (replacing an older one there), so that it is
+    trained again from scratch and its results stay readable until then."""
+    target = out / SUPERSEDED_DIR / run_dir.name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if target.exists():
+        shutil.rmtree(target)
+    os.replace(run_dir, target)
+    if not quiet:
+        say((f"{run_dir.name}: trained on data that a data stage has changed since, moved to {target}; training it "
+             "again", "yellow"))
 
 
 @dataclass(frozen=True)
@@ -298,6 +323,8 @@ def _do_run(job: RunJob, *, quiet: bool, starting: Callable[[], None] = lambda: 
     with claim(job.out / "runs" / f".{job.name}.lock") as mine:
         if not mine:
             return False
+        if trained_on_other_data(run_dir, job.data):
+            _set_aside(run_dir, job.out, quiet)
         overrides = run_overrides(job.config, job.model, run_dir)  # as the run is now that it is ours
         if run_done(run_dir, overrides):  # finished by another process between the check and the claim
             return True
@@ -326,7 +353,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
         name = run_name(model, fold, seed)
         if selected is not None and name not in selected:
             continue
-        if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name)):
+        if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name), data):
             note(f"{index}/{len(plan)} {name}: done earlier, skipped", "dim")
             continue
         job = RunJob(config, data, out, model, fold, seed, device, config.eval_options)
@@ -362,7 +389,7 @@ def _work_in_pool(config: ExperimentConfig, data: Path, out: Path, pool: Executo
             name = run_name(model, fold, seed)
             if name not in selected:
                 continue
-            if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name)):
+            if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name), data):
                 if not quiet:
                     say((f"{index}/{len(plan)} {name}: done earlier, skipped", "dim"))
                 continue
@@ -428,7 +455,7 @@ def _write_index(out: Path, config: ExperimentConfig, data: Path, plan: list[tup
     missing."""
     runs = [f"runs/{run_name(*key)}" for key in plan]
     with claim(out / ".index.lock", wait=True):
-        finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r))]
+        finished = [r for r, key in zip(runs, plan) if run_done(out / r, run_overrides(config, key[0], out / r), data)]
         if finished:
             metrics = pl.concat([input_files.read_parquet(out / r / EVAL_DIR / METRICS_FILE) for r in finished],
                                 how="vertical_relaxed")

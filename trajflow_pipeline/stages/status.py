@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +35,9 @@ from ..model.models import MODEL_CLASSES
 from ..rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, LOG_FILE, METRICS_FILE, ROME_CACHE_DIR, RUN_FILE,
                       is_evaluated, read_run_config, read_run_info)
 from ..util import input_files
-from .experiment import plan_order, run_done, run_name, run_overrides
-from .experiment_config import ExperimentConfig, load_experiment
+from .data_stages import StageState, data_status
+from .experiment import plan_order, run_done, run_name, run_overrides, trained_on_other_data
+from .experiment_config import SAVED_CONFIG, ExperimentConfig, load_saved_experiment
 
 #: epochs whose median time gives the recent seconds per epoch
 _RECENT_EPOCHS = 5
@@ -99,7 +100,8 @@ class RunStatus:
     fold: str | None
     seed: int
     #: planned, training, interrupted, training or interrupted, evaluating, trained, continuing, budget raised,
-    #: done, or unreadable (see `problem`)
+    #: data changed (trained on data a data stage has changed since: it is trained again), done, or unreadable
+    #: (see `problem`)
     state: str
     #: claimed by a live process now (None: cannot tell from here, see the module docstring)
     busy: bool | None
@@ -123,6 +125,8 @@ class ExperimentStatus:
     note: str | None = None
     #: "experiment", or "run" for the status of one run directory
     kind: str = "experiment"
+    #: the experiment's data stages (ingest, augmentations) and whether each is current
+    data: list[StageState] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite metric values as null), with each stage's remaining epoch range."""
@@ -134,7 +138,8 @@ class ExperimentStatus:
                 entry["progress"] |= {"epochs_left": run.progress.epochs_left,
                                       "patience_left": run.progress.patience_left}
             runs.append(entry)
-        return {"name": self.name, "kind": self.kind, "path": str(self.path), "note": self.note, "runs": runs}
+        return {"name": self.name, "kind": self.kind, "path": str(self.path), "note": self.note,
+                "data": [stage.to_dict() for stage in self.data], "runs": runs}
 
 
 def experiment_status(out: str | Path) -> ExperimentStatus:
@@ -142,14 +147,15 @@ def experiment_status(out: str | Path) -> ExperimentStatus:
     out = Path(out)
     if (out / RUN_FILE).is_file():
         return _single_run_status(out)
-    if not (out / "config.toml").is_file():
-        raise UsageError(f"{out}: not an experiment directory (no config.toml; `trajflow experiment CONFIG -o {out}` "
-                         "makes one)")
-    config = load_experiment(out / "config.toml")
+    if not (out / SAVED_CONFIG).is_file():
+        raise UsageError(f"{out}: not an experiment directory (no {SAVED_CONFIG}; `trajflow experiment CONFIG -o "
+                         f"{out}` makes one)")
+    config = load_saved_experiment(out)
     plan, note = _planned(out, config)
     claims = _Claims(out / "runs")
-    runs = [_run_status(out, config, model, fold, seed, claims) for model, fold, seed in plan]
-    return ExperimentStatus(name=config.name, path=out, runs=runs, note=note)
+    data = _data_dir(out, config)
+    runs = [_run_status(out, config, model, fold, seed, claims, data) for model, fold, seed in plan]
+    return ExperimentStatus(name=config.name, path=out, runs=runs, note=note, data=data_status(config))
 
 
 def _single_run_status(run_dir: Path) -> ExperimentStatus:
@@ -299,13 +305,13 @@ def _file_system_type(path: Path) -> str | None:
 
 
 def _run_status(out: Path, config: ExperimentConfig, model: str, fold: str | None, seed: int,
-                claims: _Claims) -> RunStatus:
-    """One run's status; a run whose files cannot be read is shown as "unreadable" with the reason, not an error
-    that hides every other run."""
+                claims: _Claims, data: Path | None = None) -> RunStatus:
+    """One run's status (against the dataset `data` as it is now, when known); a run whose files cannot be read is
+    shown as "unreadable" with the reason, not an error that hides every other run."""
     name = run_name(model, fold, seed)
     busy = claims.held(out / "runs" / f".{name}.lock")
     try:
-        return _inspect_run(out / "runs" / name, config, model, fold, seed, busy)
+        return _inspect_run(out / "runs" / name, config, model, fold, seed, busy, data)
     except TrajflowError as error:
         return RunStatus(name=name, model=model, fold=fold, seed=seed, state="unreadable", busy=busy, progress=None,
                          train_seconds=0.0, eval_seconds=None, metrics={}, problem=str(error))
@@ -316,13 +322,15 @@ _UNFINISHED = ("training", "interrupted", "training or interrupted")
 
 
 def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fold: str | None, seed: int,
-                 busy: bool | None) -> RunStatus:
+                 busy: bool | None, data: Path | None = None) -> RunStatus:
     """The state of the run in `run_dir` from its files and its claim (`busy`), its progress and its times, under
-    the experiment `config` (None: a run of its own, under its saved config)."""
+    the experiment `config` (None: a run of its own, under its saved config), on the dataset `data` when known."""
     info = read_run_info(run_dir)
     overrides = run_overrides(config, model, run_dir) if config is not None else []
     if info is None:
         state = "training" if busy else "planned"
+    elif data is not None and not busy and trained_on_other_data(run_dir, data):
+        state = "data changed"
     elif info.get("status") != "finished":
         state = "training" if busy else ("training or interrupted" if busy is None else "interrupted")
     elif not is_evaluated(run_dir):
