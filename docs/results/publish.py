@@ -48,7 +48,7 @@ from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVALUATION_RECORD, 
 from trajflow_pipeline.stages.experiment import INDEX_FILE
 from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.util import input_files
-from trajflow_pipeline.util.atomic import atomic_directory
+from trajflow_pipeline.util.atomic import atomic_directory, atomic_write_text
 
 #: the published folders of runs: the finished ones, and what continues the others
 MODELS_DIR = "models"
@@ -101,10 +101,15 @@ def publish(experiment: Path, out: Path) -> str:
     rows = 0
     if index["runs"]:
         report([experiment], out, quiet=True)
+    out.mkdir(parents=True, exist_ok=True)
+    if index["runs"]:
         aggregate = input_files.read_parquet(experiment / "metrics.parquet").filter(pl.col("aggregate"))
         aggregate.write_parquet(out / "metrics.parquet")
         rows = aggregate.height
-    out.mkdir(parents=True, exist_ok=True)
+    elif not (out / "report.md").is_file():  # also what lets `trajflow report` write over this folder later
+        atomic_write_text(out / "report.md", f"# {index.get('name', experiment.name)}\n\nNo run of this "
+                          f"experiment is finished yet; `{UNFINISHED_DIR}/` holds what continues the others "
+                          "(see ../README.md).\n")
     shutil.copy2(experiment / CONFIG_FILE, out / CONFIG_FILE)
     shutil.copy2(experiment / INDEX_FILE, out / INDEX_FILE)
     finished, unfinished = publish_runs(experiment, out)

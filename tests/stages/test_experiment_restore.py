@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 from pathlib import Path
 
 import polars as pl
@@ -13,6 +14,7 @@ import pytest
 
 from test_eval_stage import write_tiny_experiment
 
+from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.rundir import continuation_files, is_evaluated
 from trajflow_pipeline.stages.experiment import run_experiment
 from trajflow_pipeline.stages.report import report
@@ -93,9 +95,11 @@ def test_a_published_experiment_restored_elsewhere_goes_on_without_repeating_wor
     assert (out / "figures").is_dir() and any((out / "figures").glob("*min-ade-vs-k.png"))
 
 
-def test_restore_refuses_a_target_that_holds_anything(interrupted: tuple[Path, Path], tmp_path: Path) -> None:
-    _, exp = interrupted
+def test_restore_refuses_a_target_that_holds_anything(interrupted: tuple[Path, Path], tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    config, exp = interrupted
     publish = load_publish()
+    monkeypatch.setattr(publish, "report", lambda *args, **kwargs: None)  # the report is not what is tested here
     results = tmp_path / "results"
     publish.publish(exp, results)
     with pytest.raises(ValueError, match="exists and is not empty"):
@@ -103,6 +107,32 @@ def test_restore_refuses_a_target_that_holds_anything(interrupted: tuple[Path, P
     with pytest.raises(ValueError, match="no config.toml"):
         publish.restore(tmp_path / "nothing", tmp_path / "new")
     assert not (tmp_path / "new").exists()
+    # a restored finished run keeps no training state: a larger budget is refused before anything changes
+    publish.restore(results, tmp_path / "restored")
+    raised = tmp_path / "raised.toml"
+    raised.write_text(config.read_text().replace("train.flow_max_epochs=2", "train.flow_max_epochs=3"))
+    with pytest.raises(UsageError, match=r"cv-all-s0: its training state \(checkpoints/state.pt\) is not kept"):
+        run_experiment(raised, tmp_path / "restored", quiet=True)
+    assert (tmp_path / "restored" / "config.toml").read_text() == config.read_text()
+
+
+def test_an_experiment_with_no_finished_run_is_published_and_later_reported_over(
+        interrupted: tuple[Path, Path], tmp_path: Path) -> None:
+    _, exp = interrupted
+    publish = load_publish()
+    early = tmp_path / "early"
+    shutil.copytree(exp, early)
+    index = json.loads((early / "experiment.json").read_text())
+    (early / "experiment.json").write_text(json.dumps({**index, "runs": []}))  # as before cv finished
+    results = tmp_path / "results"
+    publish.publish(early, results)
+    assert "No run of this experiment is finished yet" in (results / "report.md").read_text()
+    assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["cv-all-s0", "trajflow-no-ae-all-s0"]
+    assert not any(p.is_dir() for p in (results / "models").iterdir())
+    publish.publish(exp, results)  # the same folder, once a run is finished
+    assert "cv-all-s0" in (results / "report.md").read_text()
+    assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["trajflow-no-ae-all-s0"]
+    assert (results / "models" / "cv-all-s0" / "eval" / "eval.json").is_file()
 
 
 def test_a_run_without_a_checkpoint_has_nothing_to_continue(tmp_path: Path) -> None:
