@@ -42,13 +42,14 @@ from pathlib import Path
 
 import polars as pl
 
+from trajflow_pipeline.errors import TrajflowError
 from trajflow_pipeline.report.collect import report_rows
 from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVALUATION_RECORD, METRICS_FILE, STATE_FILE,
                                       continuation_files)
 from trajflow_pipeline.stages.experiment import INDEX_FILE
 from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.util import input_files
-from trajflow_pipeline.util.atomic import atomic_directory, atomic_write_text
+from trajflow_pipeline.util.atomic import atomic_directory, atomic_file, atomic_write_bytes, atomic_write_text
 
 #: the published folders of runs: the finished ones, and what continues the others
 MODELS_DIR = "models"
@@ -104,14 +105,15 @@ def publish(experiment: Path, out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
     if index["runs"]:
         aggregate = input_files.read_parquet(experiment / "metrics.parquet").filter(pl.col("aggregate"))
-        aggregate.write_parquet(out / "metrics.parquet")
+        with atomic_file(out / "metrics.parquet") as tmp:
+            aggregate.write_parquet(tmp)
         rows = aggregate.height
     elif not (out / "report.md").is_file():  # also what lets `trajflow report` write over this folder later
         atomic_write_text(out / "report.md", f"# {index.get('name', experiment.name)}\n\nNo run of this "
                           f"experiment is finished yet; `{UNFINISHED_DIR}/` holds what continues the others "
                           "(see ../README.md).\n")
-    shutil.copy2(experiment / CONFIG_FILE, out / CONFIG_FILE)
-    shutil.copy2(experiment / INDEX_FILE, out / INDEX_FILE)
+    for name in (CONFIG_FILE, INDEX_FILE):
+        atomic_write_bytes(out / name, (experiment / name).read_bytes())
     finished, unfinished = publish_runs(experiment, out)
     return (f"published {out}: " + ("report, " if index["runs"] else "no report (no run is finished), ")
             + f"config, index, {rows} aggregate metric rows, {len(finished)} finished runs "
@@ -161,7 +163,7 @@ def main() -> None:
     args = parser.parse_args()
     try:
         print(restore(args.source, args.target) if args.restore else publish(args.source, args.target))
-    except (ValueError, OSError) as error:
+    except (ValueError, OSError, TrajflowError) as error:
         parser.error(str(error))
 
 
