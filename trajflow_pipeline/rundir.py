@@ -17,6 +17,11 @@ Layout::
 
 Every command that reads a run's own files reads them here, so a damaged file is the same one-line DataError
 naming it wherever it is met.
+
+A copy of a run that keeps only :func:`continuation_files` goes on where the run stands on another machine: an
+evaluated copy without its draws still counts as evaluated (:func:`is_evaluated` reads eval.json and
+metrics.parquet only), a trained one is evaluated and not trained again, and one in training resumes from its last
+checkpoint (docs/results/publish.py publishes and restores such copies).
 """
 
 from __future__ import annotations
@@ -230,6 +235,33 @@ def is_evaluated(run_dir: str | Path) -> bool:
         return dt.datetime.fromisoformat(evaluation["date"]) >= dt.datetime.fromisoformat(info["finished"])
     except (KeyError, TypeError, ValueError):
         return True
+
+
+#: what describes a run: run.json, the config it trains and resumes with, its training log (either format)
+DESCRIPTION_FILES = (RUN_FILE, CONFIG_FILE, *LOG_FILES)
+#: the trained model: its weights and their metadata for people
+FINAL_FILES = (f"{FINAL_DIR}/{MODEL_FILE}", f"{FINAL_DIR}/{MODEL_INFO_FILE}")
+#: what an evaluation leaves besides its draws: what produced the numbers, and the numbers
+EVALUATION_RECORD = (f"{EVAL_DIR}/{EVAL_FILE}", f"{EVAL_DIR}/{METRICS_FILE}")
+
+
+def continuation_files(run_dir: str | Path) -> tuple[str, ...]:
+    """The files of the run (paths relative to it, those present) that a copy needs to go on from where the run
+    stands without repeating finished work, leaving out what is large or can be remade (the draws, the best and
+    stage-end weights, saved ROME fits): an evaluated run's description, final model and evaluation record; a
+    trained one's description and final model (the copy is evaluated, not trained again); a run in training its
+    description and last training state (the copy resumes after that epoch). () when the run has nothing to go on
+    from (no checkpoint yet: it would start again anyway)."""
+    run_dir = Path(run_dir)
+    if is_evaluated(run_dir):
+        wanted = (*DESCRIPTION_FILES, *FINAL_FILES, *EVALUATION_RECORD)
+    elif is_trained(run_dir):
+        wanted = (*DESCRIPTION_FILES, *FINAL_FILES)
+    elif (run_dir / STATE_FILE).is_file() and (run_dir / CONFIG_FILE).is_file():
+        wanted = (*DESCRIPTION_FILES, STATE_FILE)
+    else:
+        return ()
+    return tuple(name for name in wanted if (run_dir / name).is_file())
 
 
 def final_model_identity(run_dir: str | Path) -> tuple[Any, Any] | None:

@@ -4,6 +4,10 @@ A *run* is a directory written by `trajflow train` + `trajflow eval`; the report
 folder (``eval.json``, ``metrics.parquet``, ``predictions.parquet``, ``ground_truth.parquet``) and, when present,
 ``train_log.csv`` / ``train_log.parquet``. An *experiment* directory holds ``experiment.json`` whose ``runs``
 lists its finished runs relative to it. Every problem becomes one line naming the path at fault.
+
+A run whose draws are gone (an evaluated copy that kept only eval.json and the metric rows a report reads, see
+:func:`report_rows`: docs/results/publish.py) reports the same tables; only the figures drawn from draws leave it
+out (:func:`has_draws`).
 """
 
 from __future__ import annotations
@@ -265,6 +269,20 @@ def run_metrics(run: Run) -> pl.DataFrame:
     if duplicated:
         raise DataError(f"more than one aggregate row for metric(s) {', '.join(duplicated)}", path)
     return table
+
+
+def report_rows() -> pl.Expr:
+    """The rows of a run's metrics table that a report reads: the aggregates (the tables) and the per-agent
+    (joint: per-group) rows of the unbounded metrics (their medians). A copy of the table that keeps only these
+    reports the same; the other per-agent rows are for people and scripts."""
+    return pl.col("aggregate") | pl.col("metric").str.starts_with(UNBOUNDED_PREFIX)
+
+
+def has_draws(run: Run) -> bool:
+    """Whether the run still has its draws (eval/predictions.parquet), which the example, density and minADE(K)
+    figures read; an evaluated copy may have left them behind (with the ground truth they are drawn over). Draws
+    without their ground truth stay an error, where a figure reads them."""
+    return (run.eval_dir / PREDICTIONS_FILE).exists()
 
 
 def run_medians(run: Run) -> pl.DataFrame:

@@ -31,8 +31,8 @@ from rich.progress import Progress
 from .. import __version__
 from ..errors import TrajflowError, UsageError
 from ..model.config import RunConfig
-from ..report.collect import (PlannedRun, Run, collect, load_run, load_train_log, metrics_frame, resolve_inputs,
-                              run_medians, scan_ground_truth, scan_predictions, training_seconds)
+from ..report.collect import (PlannedRun, Run, collect, has_draws, load_run, load_train_log, metrics_frame,
+                              resolve_inputs, run_medians, scan_ground_truth, scan_predictions, training_seconds)
 from ..report.curves import min_ade_curve
 from ..report.document import Block, Bullets, Cell, Code, Figure, Heading, Paragraph, Table
 from ..report.figures import plot_density, plot_examples, plot_min_ade_k, plot_training
@@ -41,7 +41,7 @@ from ..report.render import slug, to_html, to_markdown
 from ..report.scenes import choose_examples, density_data, example_panels, reference_runs
 from ..report.tables import (comparisons, fold_list, fold_stats, fold_tables, model_folds, summary_stats,
                              summary_table, targets, uneven_seeds)
-from ..rundir import GROUND_TRUTH_FILE, PREDICTIONS_FILE
+from ..rundir import EVAL_DIR, GROUND_TRUTH_FILE, PREDICTIONS_FILE
 from ..util.atomic import atomic_directory
 from ..util.progress import duration_text, make_progress
 
@@ -268,16 +268,27 @@ def _k_curve_figure(dataset: str, runs: list[Run], progress: Progress) -> Figure
 
 
 def _figures(dataset: str, runs: list[Run], max_examples: int, progress: Progress) -> list[Block]:
-    """Every figure of one dataset section, with its heading."""
-    refs = reference_runs(runs)
+    """Every figure of one dataset section, with its heading. The figures drawn from draws show the runs that
+    still have them (an evaluated copy may not: `has_draws`), and a note names the others."""
+    drawn = [run for run in runs if has_draws(run)]
     blocks: list[Block] = [Heading(3, "Figures")]
-    found = [_example_figure(dataset, refs, max_examples) if max_examples else None,
-             _density_figure(dataset, refs) if dataset == BIMODAL else None]
+    found: list[Figure | None] = []
+    if drawn:
+        refs = reference_runs(drawn)
+        found += [_example_figure(dataset, refs, max_examples) if max_examples else None,
+                  _density_figure(dataset, refs) if dataset == BIMODAL else None]
     training, without_logs = _training_figures(dataset, runs)
-    found += [*training, _k_curve_figure(dataset, runs, progress)]
+    found += [*training, _k_curve_figure(dataset, drawn, progress) if drawn else None]
     blocks += [figure for figure in found if figure is not None]
     if without_logs:
         blocks.append(Paragraph(f"No training log (train_log.csv / .parquet) for: {', '.join(without_logs)}."))
+    if len(drawn) < len(runs):
+        without = [run.name for run in runs if not has_draws(run)]
+        blocks.append(Paragraph(
+            f"No draws ({EVAL_DIR}/{PREDICTIONS_FILE}; an evaluated copy that left them behind) for "
+            f"{_plural(len(without), 'run')} ({', '.join(without)}): the figures drawn from draws (examples"
+            f"{', density' if dataset == BIMODAL else ''}, minADE vs K) leave them out"
+            f"{'' if drawn else ' and are not drawn'}; `trajflow eval RUN` draws them again."))
     return blocks
 
 

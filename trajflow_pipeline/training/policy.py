@@ -67,6 +67,9 @@ def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
     raised = budget_raise(saved, requested)
     if raised is None:
         return f"{run_dir}: {first_difference(saved, requested)} (only epoch budgets may be raised)"
+    if raised and is_trained(run_dir) and not (run_dir / STATE_FILE).is_file():
+        return (f"{run_dir}: its training state ({STATE_FILE}) is not kept (a published copy keeps only the final "
+                "model), so it cannot continue with a larger budget")
     log_path = run_dir / LOG_FILE
     log = input_files.read_parquet(log_path) if log_path.is_file() else pl.DataFrame(schema=LOG_SCHEMA)
     stages = log.get_column("stage").to_list()

@@ -1,0 +1,142 @@
+"""An experiment survives a change of machine: docs/results/publish.py publishes what continues it (finished runs'
+evaluation records without draws, unfinished runs' last training state) and restores an experiment directory from
+that, which `trajflow experiment` then continues without training or evaluating anything twice."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import polars as pl
+import pytest
+
+from test_eval_stage import write_tiny_experiment
+
+from trajflow_pipeline.errors import UsageError
+from trajflow_pipeline.rundir import continuation_files, is_evaluated
+from trajflow_pipeline.stages.experiment import run_experiment
+from trajflow_pipeline.stages.report import report
+from trajflow_pipeline.training import loop as train_loop
+
+PUBLISH = Path(__file__).resolve().parents[2] / "docs" / "results" / "publish.py"
+
+
+def load_publish():
+    """docs/results/publish.py as a module (it is a script, not part of the package)."""
+    spec = importlib.util.spec_from_file_location("publish", PUBLISH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class Killed(Exception):
+    """The machine went away."""
+
+
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """An experiment (its config, its directory; the tests leave both as they are) whose cv run is finished and
+    whose trajflow-no-ae run was killed after its first flow epoch (of two)."""
+    tmp_path = tmp_path_factory.mktemp("machine")
+    config = write_tiny_experiment(tmp_path, ["cv", "trajflow-no-ae"], [0])
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == ("flow", 1):
+            raise Killed()
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(train_loop, "_epoch_hook", hook)
+        with pytest.raises(Killed):
+            run_experiment(config, tmp_path / "exp", quiet=True)
+    return config, tmp_path / "exp"
+
+
+def test_a_published_experiment_restored_elsewhere_goes_on_without_repeating_work(
+        interrupted: tuple[Path, Path], tmp_path: Path) -> None:
+    config, exp = interrupted
+    publish = load_publish()
+    results = tmp_path / "docs" / "results" / "tiny"
+    publish.publish(exp, results)
+    done, cut = results / "models" / "cv-all-s0", results / "unfinished" / "trajflow-no-ae-all-s0"
+    assert sorted(p.relative_to(done).as_posix() for p in done.rglob("*") if p.is_file()) == [
+        "config.toml", "eval/eval.json", "eval/metrics.parquet", "final/model.json", "final/model.safetensors",
+        "run.json", "train_log.parquet"]
+    assert sorted(p.relative_to(cut).as_posix() for p in cut.rglob("*") if p.is_file()) == [
+        "checkpoints/state.pt", "config.toml", "run.json", "train_log.parquet"]
+    rows = pl.read_parquet(done / "eval" / "metrics.parquet")
+    full = pl.read_parquet(exp / "runs" / "cv-all-s0" / "eval" / "metrics.parquet")
+    assert rows.height < full.height and rows.filter(pl.col("aggregate")).equals(full.filter(pl.col("aggregate")))
+    assert set(rows.filter(~pl.col("aggregate")).get_column("metric")) == {"nll", "nll_joint"}
+
+    fresh = tmp_path / "elsewhere" / "exp"  # another machine: nothing but the published folder
+    publish.restore(results, fresh)
+    assert is_evaluated(fresh / "runs" / "cv-all-s0")
+    before = {name: (fresh / "runs" / "cv-all-s0" / name).read_bytes()
+              for name in ("run.json", "eval/eval.json", "train_log.parquet")}
+    report([fresh], tmp_path / "report-restored", quiet=True, figures=False)  # the index is there at once
+    run_experiment(fresh / "config.toml", fresh, quiet=True)
+
+    after = {name: (fresh / "runs" / "cv-all-s0" / name).read_bytes() for name in before}
+    assert after == before, "the finished run was trained or evaluated again"
+    resumed = fresh / "runs" / "trajflow-no-ae-all-s0"
+    log = pl.read_parquet(resumed / "train_log.parquet")
+    assert log.get_column("epoch").to_list() == [1, 2]
+    assert log.row(0) == pl.read_parquet(cut / "train_log.parquet").row(0), "epoch 1 was trained again"
+    info = json.loads((resumed / "run.json").read_text())
+    assert info["status"] == "finished" and is_evaluated(resumed)
+    index = json.loads((fresh / "experiment.json").read_text())
+    assert index["runs"] == index["planned"] == ["runs/cv-all-s0", "runs/trajflow-no-ae-all-s0"]
+
+    out = report([fresh], tmp_path / "report", quiet=True)
+    text = (out / "report.md").read_text()
+    assert "No draws (eval/predictions.parquet" in text and "1 run (cv-all-s0)" in text
+    assert (out / "figures").is_dir() and any((out / "figures").glob("*min-ade-vs-k.png"))
+
+
+def test_restore_refuses_a_target_that_holds_anything(interrupted: tuple[Path, Path], tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    config, exp = interrupted
+    publish = load_publish()
+    monkeypatch.setattr(publish, "report", lambda *args, **kwargs: None)  # the report is not what is tested here
+    results = tmp_path / "results"
+    publish.publish(exp, results)
+    with pytest.raises(ValueError, match="exists and is not empty"):
+        publish.restore(results, exp)
+    with pytest.raises(ValueError, match="no config.toml"):
+        publish.restore(tmp_path / "nothing", tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    # a restored finished run keeps no training state: a larger budget is refused before anything changes
+    publish.restore(results, tmp_path / "restored")
+    raised = tmp_path / "raised.toml"
+    raised.write_text(config.read_text().replace("train.flow_max_epochs=2", "train.flow_max_epochs=3"))
+    with pytest.raises(UsageError, match=r"cv-all-s0: its training state \(checkpoints/state.pt\) is not kept"):
+        run_experiment(raised, tmp_path / "restored", quiet=True)
+    assert (tmp_path / "restored" / "config.toml").read_text() == config.read_text()
+
+
+def test_an_experiment_with_no_finished_run_is_published_and_later_reported_over(
+        interrupted: tuple[Path, Path], tmp_path: Path) -> None:
+    _, exp = interrupted
+    publish = load_publish()
+    early = tmp_path / "early"
+    shutil.copytree(exp, early)
+    index = json.loads((early / "experiment.json").read_text())
+    (early / "experiment.json").write_text(json.dumps({**index, "runs": []}))  # as before cv finished
+    results = tmp_path / "results"
+    publish.publish(early, results)
+    assert "No run of this experiment is finished yet" in (results / "report.md").read_text()
+    assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["cv-all-s0", "trajflow-no-ae-all-s0"]
+    assert not any(p.is_dir() for p in (results / "models").iterdir())
+    publish.publish(exp, results)  # the same folder, once a run is finished
+    assert "cv-all-s0" in (results / "report.md").read_text()
+    assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["trajflow-no-ae-all-s0"]
+    assert (results / "models" / "cv-all-s0" / "eval" / "eval.json").is_file()
+
+
+def test_a_run_without_a_checkpoint_has_nothing_to_continue(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.toml").write_text("")
+    assert continuation_files(run) == ()
