@@ -6,7 +6,8 @@ work.
     python docs/results/publish.py --restore docs/results/eth_ucy runs/paper/eth_ucy
 
 Publishing runs `trajflow report EXP -o OUT` (once a run is finished), then writes beside the report:
-- `config.toml`: the experiment's config, as the experiment saved it;
+- `config.toml`: the experiment's config, as the experiment saved it (and `config_set.json`, its `--set`
+  overrides, where it ran with some);
 - `experiment.json`: the experiment's index (its plan and finished runs), as the experiment wrote it;
 - `metrics.parquet`: the aggregate rows (`aggregate = true`) of the experiment's metrics, the numbers the report
   tables show;
@@ -47,6 +48,7 @@ from trajflow_pipeline.report.collect import report_rows
 from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVALUATION_RECORD, METRICS_FILE, STATE_FILE,
                                       continuation_files)
 from trajflow_pipeline.stages.experiment import INDEX_FILE
+from trajflow_pipeline.stages.experiment_config import SAVED_OVERRIDES
 from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.util import input_files
 from trajflow_pipeline.util.atomic import atomic_directory, atomic_file, atomic_write_bytes, atomic_write_text
@@ -112,8 +114,9 @@ def publish(experiment: Path, out: Path) -> str:
         atomic_write_text(out / "report.md", f"# {index.get('name', experiment.name)}\n\nNo run of this "
                           f"experiment is finished yet; `{UNFINISHED_DIR}/` holds what continues the others "
                           "(see ../README.md).\n")
-    for name in (CONFIG_FILE, INDEX_FILE):
-        atomic_write_bytes(out / name, (experiment / name).read_bytes())
+    for name in (CONFIG_FILE, INDEX_FILE, SAVED_OVERRIDES):  # (the --set overrides only where it ran with some)
+        if name != SAVED_OVERRIDES or (experiment / name).is_file():
+            atomic_write_bytes(out / name, (experiment / name).read_bytes())
     finished, unfinished = publish_runs(experiment, out)
     return (f"published {out}: " + ("report, " if index["runs"] else "no report (no run is finished), ")
             + f"config, index, {rows} aggregate metric rows, {len(finished)} finished runs "
@@ -137,6 +140,8 @@ def restore(results: Path, experiment: Path) -> str:
         raise ValueError(f"{results / INDEX_FILE}: lists finished runs that {MODELS_DIR}/ lacks ({', '.join(missing)})")
     with atomic_directory(experiment) as staging:
         shutil.copy2(results / CONFIG_FILE, staging / CONFIG_FILE)
+        if (results / SAVED_OVERRIDES).is_file():
+            shutil.copy2(results / SAVED_OVERRIDES, staging / SAVED_OVERRIDES)
         for run in runs:
             shutil.copytree(run, staging / RUNS_DIR / run.name)
         if index is not None:
