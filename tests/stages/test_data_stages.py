@@ -161,3 +161,12 @@ def test_overrides_set_dotted_keys_as_toml_values_or_strings() -> None:
         apply_overrides(raw, ["data.raw"], Path("c.toml"))
     with pytest.raises(UsageError, match="data.path is not a table"):
         apply_overrides(raw, ["data.path.x=1"], Path("c.toml"))
+
+
+def test_a_stage_never_replaces_what_is_not_a_dataset(chain: Path) -> None:
+    notes = chain.parent / "data" / "walk" / "notes.txt"
+    notes.parent.mkdir(parents=True)
+    notes.write_text("mine")
+    with pytest.raises(UsageError, match="walk: holds something that is not a trajflow dataset.*ingest csv"):
+        run_experiment(chain, chain.parent / "exp", quiet=True)
+    assert notes.read_text() == "mine"

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..errors import TrajflowError
+from ..errors import TrajflowError, UsageError
 from ..ingest.registry import get_ingest
 from ..schemas import open_dataset
 from ..schemas.stage_record import StageRecord, read_stage_record, write_stage_record
@@ -39,6 +39,8 @@ from ..util.progress import say
 from .augment import AUGMENTATIONS
 from .experiment_config import ExperimentConfig
 
+#: raw bytes to hash above which the build says it is hashing (about a second at SHA-256's speed)
+SAY_HASHING = 1_000_000_000
 #: what a stage can be: built by this call, reused (current), stale or missing (to be built), or "given" (the
 #: [data] path without an ingest: used as it is)
 STATES = ("built", "reused", "stale", "missing", "given", "unknown")
@@ -123,6 +125,10 @@ def data_status(config: ExperimentConfig) -> list[StageState]:
                 upstream = open_dataset(stage.path).fingerprint()["data_sha256"]
                 states.append(StageState(stage, "given", "used as it is ([data] names no ingest)"))
                 continue
+            if states and states[-1].state == "unknown":
+                states.append(StageState(stage, "unknown", "the stage before it could not be checked",
+                                         read_stage_record(stage.path)))
+                continue
             if states and states[-1].state not in ("reused", "given"):
                 states.append(StageState(stage, "stale", "the stage before it is built again first",
                                          read_stage_record(stage.path)))
@@ -140,13 +146,17 @@ def data_status(config: ExperimentConfig) -> list[StageState]:
 def _build(stage: DataStage, upstream: str | None, quiet: bool) -> StageState:
     """Build `stage` unless it is current; its state after."""
     before = read_stage_record(stage.path)
-    identity, inputs = _identity(stage, upstream, before)
+    identity, inputs = _identity(stage, upstream, before, quiet)
     state, reason, record = _current(stage, identity)
     if state == "current":
         if not quiet:
             say((f"data: {stage.label} -> {stage.path}: current, reused", "dim"))
         assert record is not None
         return StageState(stage, "reused", "", record)
+    if before is None and stage.path.exists() and not (stage.path / "dataset.json").is_file() and (
+            not stage.path.is_dir() or any(stage.path.iterdir())):
+        raise UsageError(f"{stage.path}: holds something that is not a trajflow dataset, which the data stage "
+                         f"{stage.label} will not replace; give the stage another path in the config")
     if not quiet:
         say((f"data: {stage.label} -> {stage.path}", "bold"), f" ({reason}): building")
     # Replace a dataset this stage built (its record says so) whatever it holds now; anything else only when it
@@ -189,9 +199,10 @@ def _what_changed(stage: DataStage, record: StageRecord, identity: str) -> str:
         record.kind, record.name) != (stage.kind, stage.name) else f"identity {record.identity[:12]} != {identity[:12]}"
 
 
-def _identity(stage: DataStage, upstream: str | None, before: StageRecord | None) -> tuple[str, list[dict[str, Any]]]:
+def _identity(stage: DataStage, upstream: str | None, before: StageRecord | None,
+              quiet: bool = True) -> tuple[str, list[dict[str, Any]]]:
     """The stage's identity (SHA-256, hex) and the fingerprints of the raw files it reads (ingests)."""
-    inputs = _raw_fingerprints(stage, before) if stage.kind == "ingest" and stage.raw is not None else []
+    inputs = _raw_fingerprints(stage, before, quiet) if stage.kind == "ingest" and stage.raw is not None else []
     payload = {"kind": stage.kind, "name": stage.name, "options": _canonical(_typed_options(stage)),
                "inputs": [[f["path"], f["size"], f["sha256"]] for f in inputs], "upstream": upstream}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest(), inputs
@@ -221,9 +232,10 @@ def _canonical(value: Any) -> Any:
     return repr(value)
 
 
-def _raw_fingerprints(stage: DataStage, before: StageRecord | None) -> list[dict[str, Any]]:
+def _raw_fingerprints(stage: DataStage, before: StageRecord | None, quiet: bool = True) -> list[dict[str, Any]]:
     """Relative path, size, modification time and SHA-256 of each raw file the ingest reads, sorted by path; a file
-    of the same size and modification time as in the earlier record keeps its recorded hash."""
+    of the same size and modification time as in the earlier record keeps its recorded hash (a line says so when
+    more than :data:`SAY_HASHING` bytes are to be read)."""
     assert stage.raw is not None
     raw, adapter = stage.raw, get_ingest(stage.name)
     if not raw.exists():
@@ -234,16 +246,20 @@ def _raw_fingerprints(stage: DataStage, before: StageRecord | None) -> list[dict
     else:
         files = [raw] if raw.is_file() else [p for p in raw.rglob("*") if p.is_file()]
     known = {entry["path"]: entry for entry in (before.inputs if before is not None else [])}
+    files = sorted(files)
+    stats = [path.stat() for path in files]
+    names = [path.relative_to(base).as_posix() for path in files]
+    hashes = [entry["sha256"] if (entry := known.get(name)) and (entry.get("size"), entry.get("mtime_ns")) == (
+        stat.st_size, stat.st_mtime_ns) else None for name, stat in zip(names, stats)]
+    to_read = sum(stat.st_size for stat, digest in zip(stats, hashes) if digest is None)
+    if to_read > SAY_HASHING and not quiet:
+        say((f"data: {stage.label}: hashing {hashes.count(None)} raw file(s), {to_read / 1e9:.1f} GB", "dim"))
     fingerprints = []
-    for path in sorted(files):
-        stat = path.stat()
-        relative = path.relative_to(base).as_posix()
-        entry = known.get(relative)
-        if entry is None or (entry.get("size"), entry.get("mtime_ns")) != (stat.st_size, stat.st_mtime_ns):
+    for path, name, stat, digest in zip(files, names, stats, hashes):
+        if digest is None:
             with path.open("rb") as handle:
-                entry = {"sha256": hashlib.file_digest(handle, "sha256").hexdigest()}
-        fingerprints.append({"path": relative, "size": stat.st_size, "mtime_ns": stat.st_mtime_ns,
-                             "sha256": entry["sha256"]})
+                digest = hashlib.file_digest(handle, "sha256").hexdigest()
+        fingerprints.append({"path": name, "size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "sha256": digest})
     return fingerprints
 
 
