@@ -36,7 +36,7 @@ def experiment_command(
         "--set", metavar="KEY=VALUE", help=(
             "Override a value of the config file, repeatable: a dotted key into its tables and a TOML value, e.g. "
             "--set data.raw=/data/eth_ucy (so nobody edits a committed config to point at their data), "
-            "--set augment.0.copies=50 (the first [[augment]] step)."))] = None,
+            "--set augment.0.copies=50 (the first augmentation step)."))] = None,
     no_report: Annotated[bool, typer.Option(
         "--no-report", help="Do not write the report (OUT/report) at the end.")] = False,
     quiet: Quiet = False,
