@@ -81,16 +81,16 @@ def finished(exp: Path) -> dict[str, str]:
 
 def test_csv_to_augmentation_to_runs_to_report_builds_each_stage_only_when_its_inputs_change(chain: Path) -> None:
     exp, data = chain.parent / "exp", chain.parent / "data"
-    run_experiment(chain, exp, quiet=True)
+    run_experiment(chain, exp, quiet=True, report=True)  # as the command does unless --no-report
     assert builds(data) == {"walk": 1, "walk_scale_rotate": 1}
     assert "trajflow" in (exp / "report" / "report.md").read_text().lower()
     first = finished(exp)
     assert set(first) == {"trajflow-0-s0", "cv-0-s0"}
 
-    run_experiment(chain, exp, quiet=True, report=False)  # unchanged: nothing is built or trained again
+    run_experiment(chain, exp, quiet=True)  # unchanged: nothing is built or trained again
     assert builds(data) == {"walk": 1, "walk_scale_rotate": 1} and finished(exp) == first
 
-    run_experiment(chain, exp, quiet=True, report=False, overrides=["augment.0.copies=2"])
+    run_experiment(chain, exp, quiet=True, overrides=["augment.0.copies=2"])
     assert builds(data) == {"walk": 1, "walk_scale_rotate": 2}  # the augmentation only, not the ingest
     again = finished(exp)
     assert set(again) == set(first) and all(again[run] != first[run] for run in first)  # every run trained again
@@ -108,14 +108,14 @@ def test_csv_to_augmentation_to_runs_to_report_builds_each_stage_only_when_its_i
 
 def test_raw_content_decides_not_its_place_or_time(chain: Path, tmp_path: Path) -> None:
     config = load_experiment(chain)
-    run_experiment(chain, tmp_path / "exp", quiet=True, report=False, overrides=['protocol.models=["cv"]'])
+    run_experiment(chain, tmp_path / "exp", quiet=True, overrides=['protocol.models=["cv"]'])
     raw = tmp_path / "walk.csv"
     os.utime(raw, ns=(raw.stat().st_atime_ns, raw.stat().st_mtime_ns + 10**9))  # touched, same content
     moved = tmp_path / "elsewhere" / "walk.csv"
     moved.parent.mkdir()
     shutil.copy(raw, moved)  # the same file in another place (another machine)
     assert [s.state for s in data_status(config)] == ["reused", "reused"]
-    run_experiment(chain, tmp_path / "exp", quiet=True, report=False,
+    run_experiment(chain, tmp_path / "exp", quiet=True,
                    overrides=['protocol.models=["cv"]', f"data.raw={moved.as_posix()}"])
     assert builds(tmp_path / "data") == {"walk": 1, "walk_scale_rotate": 1}
     write_walkers(raw, seed=1)  # other content
@@ -170,3 +170,21 @@ def test_a_stage_never_replaces_what_is_not_a_dataset(chain: Path) -> None:
     with pytest.raises(UsageError, match="walk: holds something that is not a trajflow dataset.*ingest csv"):
         run_experiment(chain, chain.parent / "exp", quiet=True)
     assert notes.read_text() == "mine"
+
+
+def test_the_command_ends_with_the_report_and_status_lists_the_data_stages(chain: Path) -> None:
+    from typer.testing import CliRunner
+
+    from trajflow_pipeline.cli.app import app
+
+    exp = chain.parent / "exp"
+    result = CliRunner().invoke(app, ["experiment", str(chain), "-o", str(exp), "--set", 'protocol.models=["cv"]'])
+    assert result.exit_code == 0, result.output
+    assert (exp / "report" / "report.html").is_file() and "report:" in result.output
+    status = json.loads(CliRunner().invoke(app, ["status", str(exp), "--json"]).output)
+    assert [(s["name"], s["state"], s["builds"]) for s in status["data"]] == [("csv", "reused", 1),
+                                                                              ("scale-rotate", "reused", 1)]
+    (exp / "report" / "report.html").unlink()
+    result = CliRunner().invoke(app, ["experiment", str(chain), "-o", str(exp), "--set", 'protocol.models=["cv"]',
+                                      "--no-report"])
+    assert result.exit_code == 0 and not (exp / "report" / "report.html").exists()

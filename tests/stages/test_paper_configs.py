@@ -155,7 +155,7 @@ def test_levelx_quick_configs_run_end_to_end_on_fixtures(tmp_path: Path, member:
     config.write_text(text)
     # from the raw recordings: the config's ingest, pointed at them from the command line
     overrides = [f"data.raw={raw.as_posix()}", f"data.path={(tmp_path / 'data').as_posix()}"]
-    experiment = run_experiment(config, tmp_path / "exp", quiet=True, overrides=overrides, report=False)
+    experiment = run_experiment(config, tmp_path / "exp", quiet=True, overrides=overrides)
     runs = json.loads((experiment / "experiment.json").read_text())["runs"]
     assert len(runs) == 2
 
@@ -174,7 +174,7 @@ def test_forking_paths_quick_runs_from_the_raw_release_through_ingest_and_augmen
                  'train.set=["train.ae_max_epochs=1", "train.ae_min_epochs=1", "train.flow_max_epochs=1", '
                  '"train.flow_min_epochs=1", "model.flow_layers=2"]', "eval.samples=5", "eval.k=3", "eval.workers=1"]
     experiment = run_experiment(CONFIGS / "forking_paths_quick.toml", tmp_path / "exp", quiet=True,
-                                overrides=overrides, report=False)
+                                overrides=overrides)
     assert len(json.loads((experiment / "experiment.json").read_text())["runs"]) == 2
     ingest, augmented = read_stage_record(tmp_path / "fp"), read_stage_record(tmp_path / "fp_aug")
     assert ingest is not None and augmented is not None

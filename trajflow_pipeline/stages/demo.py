@@ -29,5 +29,5 @@ def demo(out: str | Path = "trajflow-demo", *, device: str = "auto", quiet: bool
     config = out / DEMO_CONFIG
     data = (out / "data" / "synthetic_bimodal").resolve()
     atomic_write_text(config, builtin_config(DEMO_CONFIG).replace("@DATA@", data.as_posix()))
-    experiment = run_experiment(config, out / "experiment", device=device, quiet=quiet, report=False)
+    experiment = run_experiment(config, out / "experiment", device=device, quiet=quiet)
     return report([experiment], out / "report", quiet=quiet)
