@@ -104,8 +104,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     """Build the data stages that are not current, then train and evaluate every run of the experiment into `out`
     (resuming what an earlier call left), with `jobs` worker processes, or as tasks of `cpus_per_run` CPUs on the
     Ray cluster at `ray`; with `only` (run-name patterns), just the runs that match; then, with `report` (as the
-    command does unless --no-report), write the report into ``out/report``. `overrides` (``KEY=VALUE``) apply on top of the config file. Runs that
-    another process is working on are left to it (see the module docstring)."""
+    command does unless --no-report), write the report into ``out/report``. `overrides` (``KEY=VALUE``) apply on
+    top of the config file. Runs that another process is working on are left to it (see the module docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     if jobs > 1 and not claims_supported():
