@@ -188,3 +188,10 @@ def test_the_command_ends_with_the_report_and_status_lists_the_data_stages(chain
     result = CliRunner().invoke(app, ["experiment", str(chain), "-o", str(exp), "--set", 'protocol.models=["cv"]',
                                       "--no-report"])
     assert result.exit_code == 0 and not (exp / "report" / "report.html").exists()
+
+
+def test_a_config_without_ingest_needs_its_dataset(tmp_path: Path) -> None:
+    config = tmp_path / "given.toml"
+    config.write_text(f'[data]\npath = "{(tmp_path / "nothing").as_posix()}"\n[protocol]\nmodels = ["cv"]\n')
+    with pytest.raises(UsageError, match="nothing: dataset not found, and the experiment config names no ingest"):
+        run_experiment(config, tmp_path / "exp", quiet=True)

@@ -103,6 +103,9 @@ def build_data(config: ExperimentConfig, *, quiet: bool = False) -> list[StageSt
     upstream: str | None = None
     for stage in data_stages(config):
         if stage.kind == "given":
+            if not (stage.path / "dataset.json").is_file():
+                raise UsageError(f"{stage.path}: dataset not found, and the experiment config names no ingest to "
+                                 "build it ([data] ingest)")
             upstream = open_dataset(stage.path).fingerprint()["data_sha256"]
             states.append(StageState(stage, "given", "used as it is ([data] names no ingest)"))
             continue
