@@ -155,11 +155,12 @@ def _bin_inverse(y: Tensor, outside: Tensor, x0: Tensor, w: Tensor, y0: Tensor, 
     return torch.where(outside, y, x), ladj
 
 
-def _exp_soft_clamp(u: Tensor, scale: float) -> Tensor:
+def _exp_soft_clamp(u: Tensor, scale: float, out: Tensor | None = None) -> Tensor:
     """exp of zuko's soft clamp u / (1 + |u| scale), as exp2(u / ((1 + |u| scale) ln 2)): the same function to
-    float rounding (a few ulp), and torch's CPU exp2 is several times faster than its exp."""
+    float rounding (a few ulp), and torch's CPU exp2 is several times faster than its exp. Written to `out`
+    (of u's shape) when given."""
     denominator = u.abs().mul_(scale * _LN2).add_(_LN2)
-    return torch.div(u, denominator, out=denominator).exp2_()
+    return torch.exp2(torch.div(u, denominator, out=denominator), out=out)
 
 
 _LN2 = math.log(2.0)
@@ -182,7 +183,7 @@ def spline_inverse_columns(phi: Tensor, y: Tensor, bound: float, limit: float) -
     size = y.shape[0]
     cumulative = phi.new_empty(2, bins + 1, size)                              # (axis, knot 0..K, E)
     cumulative[:, 0] = 0
-    cumulative[:, 1:] = _exp_soft_clamp(phi[:2 * bins], 2 / limit).view(2, bins, size)
+    _exp_soft_clamp(phi[:2 * bins].view(2, bins, size), 2 / limit, out=cumulative[:, 1:])
     for knot in range(2, bins + 1):
         cumulative[:, knot] += cumulative[:, knot - 1]
     total = cumulative[:, bins]                                                 # (2, E)
