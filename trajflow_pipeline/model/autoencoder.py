@@ -61,10 +61,10 @@ class TrajectoryAutoencoder(nn.Module):
         on many samples: (N, m) latents -> (N, steps, 2) (a view of a (steps, 2, N) tensor).
 
         The GRU runs on columns (one column per latent), so each gate block is a contiguous row range: the state
-        rows are [the first layer's input; each layer's hidden state], layer l reads the contiguous rows l and
-        l + 1 of it with one product (:meth:`_inference_weights`) and writes its new hidden state in place, which
-        is then the next layer's input (the n gate's two products are one batched product of the two row blocks,
-        without the zero blocks one matrix over both would have). The input layer is folded into the first GRU layer's input weights, and
+        rows are [the first layer's input; each layer's hidden state], layer l reads the contiguous row blocks l
+        and l + 1 of it (:meth:`_inference_weights`: the r and z gates one product, the n gate's input and hidden
+        products one batched product of the two blocks) and writes its new hidden state in place, which is then
+        the next layer's input. The input layer is folded into the first GRU layer's input weights, and
         tanh(u) = 2 sigmoid(2u) - 1 (sigmoid has a much faster CPU kernel). `flat` may be the transpose of a
         column-wise tensor (what the flow's sampling returns): then no copy is made."""
         columns = flat.t().contiguous()                                                        # (m, N)

@@ -13,6 +13,9 @@ Three refinements over the stock zuko classes, none changing the maths:
   generic inverse would call it a second time for the log-determinant.
 * The spline (:class:`RationalQuadraticSpline`) is zuko's ``MonotonicRQSTransform`` re-expressed with fewer,
   larger tensor operations (sampling 100 futures for 1000 agents evaluates ten million splines per layer).
+* Sampling (:meth:`ConditionalSplineFlow.from_noise`) runs the couplings' inverse on the draws stored as columns
+  (:meth:`SplineCoupling.inverse_columns`, :func:`spline_inverse_columns`), so that every operation runs over
+  long contiguous rows instead of groups of 8 to 32 values.
 """
 
 from __future__ import annotations
@@ -188,7 +191,8 @@ def spline_inverse_columns(phi: Tensor, y: Tensor, bound: float, limit: float) -
         cumulative[:, knot] += cumulative[:, knot - 1]
     total = cumulative[:, bins]                                                 # (2, E)
     threshold = (y + bound).mul_(total[1]).div_(2 * bound)
-    k = (cumulative[1, 1:bins] < threshold).view(torch.uint8).sum(0, dtype=torch.uint8).long()  # bin 0..K-1
+    count = torch.uint8 if bins <= 256 else torch.int64                         # summing uint8 is far faster
+    k = (cumulative[1, 1:bins] < threshold).view(torch.uint8).sum(0, dtype=count).long()      # bin 0..K-1
     lower = k.mul_(size).add_(torch.arange(size, device=y.device))              # flat index of knot k, axis 0
     offsets = torch.tensor([0, size, (bins + 1) * size, (bins + 2) * size], device=y.device)
     corners = cumulative.view(-1).index_select(0, (lower + offsets[:, None]).view(-1)).view(2, 2, size)
