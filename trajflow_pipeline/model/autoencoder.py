@@ -72,7 +72,7 @@ class TrajectoryAutoencoder(nn.Module):
         layers = [self._inference_weights(index) for index in range(self.layers)]
         state = columns.new_empty(self.layers + 1, size, columns.shape[1])
         state.copy_(columns.expand_as(state))               # the latent: the first input and every initial state
-        state = state.view(-1, columns.shape[1])
+        state = state.view((self.layers + 1) * size, columns.shape[1])
         out = columns.new_empty(steps, 2, columns.shape[1])
         top = state[self.layers * size:]
         for step in range(steps):
@@ -81,7 +81,7 @@ class TrajectoryAutoencoder(nn.Module):
             for index, (w_rz, b_rz, w_n, b_n) in enumerate(layers):
                 inputs = state[index * size:(index + 2) * size]                            # [x; h] (2 size, N)
                 rz = torch.addmm(b_rz, w_rz, inputs).sigmoid_()
-                gi_n, gh_n = torch.baddbmm(b_n, w_n, inputs.view(2, size, -1))             # W_in x, W_hn h
+                gi_n, gh_n = torch.baddbmm(b_n, w_n, inputs.view(2, size, inputs.shape[1]))   # W_in x, W_hn h
                 n = gi_n.addcmul_(rz[:size], gh_n).sigmoid_().mul_(2).sub_(1)
                 hidden = state[(index + 1) * size:(index + 2) * size]
                 torch.lerp(n, hidden, rz[size:], out=hidden)                                 # n + z (h - n)

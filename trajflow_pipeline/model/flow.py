@@ -416,7 +416,7 @@ class SplineCoupling(GeneralCouplingTransform):
             h[:-1].add_(first.bias[:, None])
         else:
             offset = torch.addmm(first.bias, c, first.weight[:, self.n_pass:].t())             # (B, H)
-            h[:-1].view(-1, n, c.shape[0]).add_(offset.t().unsqueeze(1))
+            h[:-1].view(offset.shape[1], n, c.shape[0]).add_(offset.t().unsqueeze(1))
         for index, layer in enumerate(rest):
             if isinstance(layer, (nn.Linear, ZukoLinear)):
                 weight = torch.cat((layer.weight, layer.bias[:, None]), dim=1)                 # (out, in + 1)
@@ -430,7 +430,8 @@ class SplineCoupling(GeneralCouplingTransform):
                 F.elu(h[:-1], layer.alpha, inplace=True)
             else:
                 h[:-1] = layer(h[:-1])                                  # any other element-wise module
-        x_b, ladj = spline_inverse_columns(phi.view(-1, y_b.numel()), y_b.reshape(-1), self.bound, self.limit)
+        x_b, ladj = spline_inverse_columns(phi.view(phi.shape[0] // y_b.shape[0], y_b.numel()), y_b.reshape(-1),
+                                           self.bound, self.limit)
         return torch.cat((y_a, x_b.view(y_b.shape))), ladj.view(y_b.shape).sum(0)
 
     def _spline_rows(self, weight: Tensor) -> Tensor:
