@@ -113,6 +113,18 @@ def test_decoder_rolls_out_past_the_trained_horizon() -> None:
     assert ae.decode(torch.randn(3, 4, 20), 7).shape == (3, 4, 7, 2)
 
 
+def test_decoder_without_gradients_is_the_gru_decoder() -> None:
+    """Sampling's decoder (GRU on columns, gates rearranged, without gradients) is nn.GRU's recursion."""
+    torch.manual_seed(1)
+    ae = TrajectoryAutoencoder().double()
+    latent = torch.randn(20, 3, 5, dtype=torch.float64).permute(1, 2, 0)   # a transposed layout, as sampling gives
+    reference = ae.decode(latent, 17)                                        # parameters need gradients: nn.GRU
+    with torch.no_grad():
+        fast = ae.decode(latent, 17)
+    assert reference.requires_grad and not fast.requires_grad
+    assert torch.allclose(fast, reference, atol=1e-12)
+
+
 def test_autoencoder_loss_is_rmse_on_positions() -> None:
     torch.manual_seed(0)
     ae = TrajectoryAutoencoder()

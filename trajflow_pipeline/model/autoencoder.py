@@ -41,10 +41,9 @@ class TrajectoryAutoencoder(nn.Module):
         lead = latent.shape[:-1]
         flat = latent.reshape(-1, latent.shape[-1])
         if torch.is_grad_enabled() and (flat.requires_grad or any(p.requires_grad for p in self.parameters())):
-            tops = self._roll_out(flat, steps)
+            out = self.dec_out(torch.stack(self._roll_out(flat, steps), dim=1))
         else:
-            tops = self._roll_out_inference(flat, steps)
-        out = self.dec_out(torch.stack(tops, dim=1))
+            out = self._decode_inference(flat, steps)
         return out.reshape(*lead, steps, 2)
 
     def _roll_out(self, flat: Tensor, steps: int) -> list[Tensor]:
@@ -57,31 +56,42 @@ class TrajectoryAutoencoder(nn.Module):
             tops.append(inputs)
         return tops
 
-    def _roll_out_inference(self, flat: Tensor, steps: int) -> list[Tensor]:
-        """The same recursion as :meth:`_roll_out` without gradients, computed for throughput on many samples.
+    def _decode_inference(self, flat: Tensor, steps: int) -> Tensor:
+        """The same recursion as :meth:`_roll_out` and the output layer, without gradients, computed for throughput
+        on many samples: (N, m) latents -> (N, steps, 2) (a view of a (steps, 2, N) tensor).
 
-        The GRU equations are evaluated with contiguous gate blocks, the input layer folded into the first GRU
-        layer's input weights, and tanh(u) = 2 sigmoid(2u) - 1 (sigmoid has a much faster CPU kernel).
-        """
+        The GRU runs on columns (one column per latent), so each gate block is a contiguous row range: the state
+        rows are [the first layer's input; each layer's hidden state], layer l reads the contiguous row blocks l
+        and l + 1 of it (:meth:`_inference_weights`: the r and z gates one product, the n gate's input and hidden
+        products one batched product of the two blocks) and writes its new hidden state in place, which is then
+        the next layer's input. The input layer is folded into the first GRU layer's input weights, and
+        tanh(u) = 2 sigmoid(2u) - 1 (sigmoid has a much faster CPU kernel). `flat` may be the transpose of a
+        column-wise tensor (what the flow's sampling returns): then no copy is made."""
+        columns = flat.t().contiguous()                                                        # (m, N)
+        size = self.dec_gru.hidden_size
         layers = [self._inference_weights(index) for index in range(self.layers)]
-        hidden = [flat] * self.layers
-        inputs, tops = flat, []
-        for _ in range(steps):
-            x = inputs
-            for index, (w_rz, b_rz, w_in, b_in, w_hn, b_hn) in enumerate(layers):
-                h = hidden[index]
-                rz = torch.sigmoid(F.linear(torch.cat((x, h), dim=1), w_rz, b_rz))
-                size = h.shape[1]
-                reset, update = rz[:, :size], rz[:, size:]
-                n = torch.sigmoid(F.linear(x, w_in, b_in) + reset * F.linear(h, w_hn, b_hn)).mul_(2).sub_(1)
-                x = n + update * (h - n)
-                hidden[index] = x
-            inputs = x
-            tops.append(x)
-        return tops
+        state = columns.new_empty(self.layers + 1, size, columns.shape[1])
+        state.copy_(columns.expand_as(state))               # the latent: the first input and every initial state
+        state = state.view((self.layers + 1) * size, columns.shape[1])
+        out = columns.new_empty(steps, 2, columns.shape[1])
+        top = state[self.layers * size:]
+        for step in range(steps):
+            if step:
+                state[:size].copy_(top)                                              # the next input: the top state
+            for index, (w_rz, b_rz, w_n, b_n) in enumerate(layers):
+                inputs = state[index * size:(index + 2) * size]                            # [x; h] (2 size, N)
+                rz = torch.addmm(b_rz, w_rz, inputs).sigmoid_()
+                gi_n, gh_n = torch.baddbmm(b_n, w_n, inputs.view(2, size, inputs.shape[1]))   # W_in x, W_hn h
+                n = gi_n.addcmul_(rz[:size], gh_n).sigmoid_().mul_(2).sub_(1)
+                hidden = state[(index + 1) * size:(index + 2) * size]
+                torch.lerp(n, hidden, rz[size:], out=hidden)                                 # n + z (h - n)
+            torch.addmm(self.dec_out.bias[:, None], self.dec_out.weight, top, out=out[step])
+        return out.permute(2, 0, 1)
 
-    def _inference_weights(self, index: int) -> tuple[Tensor, ...]:
-        """Weights of decoder GRU layer `index` rearranged for :meth:`_roll_out_inference`."""
+    def _inference_weights(self, index: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Decoder GRU layer `index` for :meth:`_decode_inference` on [input; hidden] columns: the r and z gates'
+        weights on both and their summed biases (as columns), and the n gate's input and hidden weights stacked
+        for one batched product, with their biases, times 2 (which makes its tanh a sigmoid)."""
         gru = self.dec_gru
         size = gru.hidden_size
         w_ih, w_hh = getattr(gru, f"weight_ih_l{index}"), getattr(gru, f"weight_hh_l{index}")
@@ -90,9 +100,10 @@ class TrajectoryAutoencoder(nn.Module):
             b_ih = w_ih @ self.dec_in.bias + b_ih
             w_ih = w_ih @ self.dec_in.weight
         w_rz = torch.cat((w_ih[:2 * size], w_hh[:2 * size]), dim=1)
-        b_rz = b_ih[:2 * size] + b_hh[:2 * size]
-        # n = tanh(u) is computed as 2 sigmoid(2u) - 1: the factor 2 goes into the weights.
-        return (w_rz, b_rz, 2 * w_ih[2 * size:], 2 * b_ih[2 * size:], 2 * w_hh[2 * size:], 2 * b_hh[2 * size:])
+        b_rz = (b_ih[:2 * size] + b_hh[:2 * size])[:, None]
+        w_n = 2 * torch.stack((w_ih[2 * size:], w_hh[2 * size:]))
+        b_n = 2 * torch.stack((b_ih[2 * size:], b_hh[2 * size:]))[..., None]
+        return w_rz, b_rz, w_n, b_n
 
     def forward(self, displacements: Tensor) -> Tensor:
         """Reconstruction of `displacements` through the latent."""
