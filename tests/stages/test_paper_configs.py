@@ -4,7 +4,6 @@ quick variant runs end to end (on a smaller set and tinier budgets than it names
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pytest
@@ -65,16 +64,17 @@ def test_configs_evaluate_jsd_only_where_the_paper_reports_it(path: Path) -> Non
     assert {"min_ade", "min_fde", "nll"} <= metrics
 
 
+def tiny_runs(epochs: int, samples: int, k: int) -> list[str]:
+    """`--set` overrides that shrink a quick config's training and evaluation further, for the suite."""
+    return [f'train.set=["train.ae_max_epochs={epochs}", "train.ae_min_epochs=1", "train.flow_max_epochs={epochs}", '
+            '"train.flow_min_epochs=1", "model.flow_layers=2"]', f"eval.samples={samples}", f"eval.k={k}",
+            "eval.workers=1"]
+
+
 def test_synthetic_quick_runs_end_to_end(tmp_path: Path) -> None:
-    text = (CONFIGS / "synthetic_bimodal_quick.toml").read_text()
-    text = text.replace('path = "data/synthetic_bimodal"', f'path = "{(tmp_path / "data").as_posix()}"')
-    text = text.replace("samples = 3000", "samples = 100")
-    text = re.sub(r"\[train\]\nset = \[[^\]]*\]", '[train]\nset = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", '
-                  '"train.flow_max_epochs=2", "train.flow_min_epochs=1", "model.flow_layers=2"]', text)
-    text = text.replace("samples = 50", "samples = 10").replace("k = 20", "k = 5\nworkers = 1")
-    config = tmp_path / "quick.toml"
-    config.write_text(text)
-    experiment = run_experiment(config, tmp_path / "exp", quiet=True)
+    config = CONFIGS / "synthetic_bimodal_quick.toml"
+    overrides = [f"data.path={(tmp_path / 'data').as_posix()}", "data.samples=100", *tiny_runs(2, 10, 5)]
+    experiment = run_experiment(config, tmp_path / "exp", quiet=True, overrides=overrides)
     assert len(json.loads((experiment / "experiment.json").read_text())["runs"]) == 4
     out = report([experiment], tmp_path / "report", quiet=True)
     markdown = (out / "report.md").read_text()
@@ -146,15 +146,10 @@ def test_levelx_quick_configs_run_end_to_end_on_fixtures(tmp_path: Path, member:
     from levelx_fixture import write_members  # tests/ingest, on the path (conftest.py)
 
     raw = write_members(tmp_path / "raw", member, 2)
-    text = (CONFIGS / f"{member}_quick.toml").read_text()
-    text = text.replace('models = ["trajflow", "trajflow-no-ae", "flomo", "cv"]', 'models = ["trajflow", "cv"]')
-    text = re.sub(r"\[train\]\nset = \[[^\]]*\]", '[train]\nset = ["train.ae_max_epochs=1", "train.ae_min_epochs=1", '
-                  '"train.flow_max_epochs=1", "train.flow_min_epochs=1", "model.flow_layers=2"]', text)
-    text = text.replace("samples = 30", "samples = 5").replace("k = 20", "k = 3\nworkers = 1")
-    config = tmp_path / "quick.toml"
-    config.write_text(text)
+    config = CONFIGS / f"{member}_quick.toml"
     # from the raw recordings: the config's ingest, pointed at them from the command line
-    overrides = [f"data.raw={raw.as_posix()}", f"data.path={(tmp_path / 'data').as_posix()}"]
+    overrides = [f"data.raw={raw.as_posix()}", f"data.path={(tmp_path / 'data').as_posix()}",
+                 'protocol.models=["trajflow", "cv"]', *tiny_runs(1, 5, 3)]
     experiment = run_experiment(config, tmp_path / "exp", quiet=True, overrides=overrides)
     runs = json.loads((experiment / "experiment.json").read_text())["runs"]
     assert len(runs) == 2
@@ -170,9 +165,7 @@ def test_forking_paths_quick_runs_from_the_raw_release_through_ingest_and_augmen
     write_release(tmp_path / "raw")
     overrides = [f"data.raw={(tmp_path / 'raw').as_posix()}", f"data.path={(tmp_path / 'fp').as_posix()}",
                  f"augment.0.path={(tmp_path / 'fp_aug').as_posix()}", "augment.0.copies=5",
-                 'protocol.models=["trajflow", "cv"]',
-                 'train.set=["train.ae_max_epochs=1", "train.ae_min_epochs=1", "train.flow_max_epochs=1", '
-                 '"train.flow_min_epochs=1", "model.flow_layers=2"]', "eval.samples=5", "eval.k=3", "eval.workers=1"]
+                 'protocol.models=["trajflow", "cv"]', *tiny_runs(1, 5, 3)]
     experiment = run_experiment(CONFIGS / "forking_paths_quick.toml", tmp_path / "exp", quiet=True,
                                 overrides=overrides)
     assert len(json.loads((experiment / "experiment.json").read_text())["runs"]) == 2
