@@ -12,10 +12,7 @@ and the peak resident memory (getrusage ru_maxrss). Streaming shows as (b) needi
 from __future__ import annotations
 
 import argparse
-import json
-import resource
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -25,6 +22,7 @@ import numpy as np
 import polars as pl
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "ingest"))
+from levelx_measure import print_generated, print_results, run_ingest  # noqa: E402
 from levelx_fixture import FRAME_RATE, highway_vehicle, write_highd_recording  # noqa: E402
 
 #: a vehicle enters every this many seconds per lane on average
@@ -50,37 +48,13 @@ def random_traffic(seed: int, vehicles: int) -> list[pl.DataFrame]:
     return result
 
 
-def child(raw: str, out: str, problems: str, recordings: list[str]) -> None:
-    """Run one ingest in this process and print its wall time, peak RSS and counts as JSON."""
-    from trajflow_pipeline.ingest.highd import ingest_highd
-    from trajflow_pipeline.schemas import open_dataset
-
-    start = time.perf_counter()
-    ingest_highd(raw, out, recordings=recordings or None, problems=problems, overwrite=True, quiet=True)
-    seconds = time.perf_counter() - start
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    ds = open_dataset(out)
-    print(json.dumps({"seconds": seconds, "peak_rss_mb": peak_mb, "samples": ds.counts["samples"],
-                      "track_rows": ds.counts["tracks"]}))
-
-
-def run_child(raw: Path, out: Path, problems: str, recordings: list[str]) -> dict:
-    command = [sys.executable, __file__, "--child", str(raw), str(out), problems, *recordings]
-    result = subprocess.run(command, check=True, capture_output=True, text=True)
-    return json.loads(result.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--recordings", type=int, default=4)
     parser.add_argument("--vehicles", type=int, default=3000)
     parser.add_argument("--problems", default="lane-change")
     parser.add_argument("--keep", type=Path, default=None, help="write the raw recordings here and keep them")
-    parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.child:
-        child(args.child[0], args.child[1], args.child[2], args.child[3:])
-        return
     workdir = Path(tempfile.mkdtemp(prefix="levelx-bench-"))
     raw = args.keep or workdir / "raw"
     try:
@@ -90,16 +64,11 @@ def main() -> None:
             vehicles = random_traffic(number, args.vehicles)
             write_highd_recording(raw, number, vehicles, location_id=number % 3 + 1)
             rows.append(sum(part.height for part in vehicles))
-        size = sum(p.stat().st_size for p in raw.glob("*_tracks.csv")) / 2 ** 20
-        print(f"generated {args.recordings} recordings, {sum(rows):,} raw rows ({', '.join(f'{r:,}' for r in rows)}),"
-              f" {size:.0f} MiB of tracks CSV in {time.perf_counter() - start:.1f} s")
-        one = run_child(raw, workdir / "one", args.problems, ["1"])
-        every = run_child(raw, workdir / "all", args.problems, [])
-        for label, result, raw_rows in (("1 recording ", one, rows[0]), (f"{args.recordings} recordings", every,
-                                                                         sum(rows))):
-            print(f"{label}: {raw_rows:,} raw rows -> {result['track_rows']:,} rows at 5 Hz, {result['samples']:,} "
-                  f"samples in {result['seconds']:.1f} s = {raw_rows / result['seconds']:,.0f} raw rows/s; "
-                  f"peak RSS {result['peak_rss_mb']:.0f} MiB")
+        print_generated(rows, raw, time.perf_counter() - start)
+        options = {"problems": args.problems}
+        one = run_ingest("highd", raw, workdir / "one", ["1"], options)
+        every = run_ingest("highd", raw, workdir / "all", [], options)
+        print_results(rows, one, every)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
 

@@ -12,10 +12,7 @@ that tracemalloc does not). Streaming shows as (b) needing about the memory of (
 from __future__ import annotations
 
 import argparse
-import json
-import resource
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -24,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "ingest"))
+from levelx_measure import print_generated, print_results, run_ingest  # noqa: E402
 from test_round_synth import (ARMS_DEG, Track, crossing_path, drive, vehicle_path,  # noqa: E402
                               write_recording)
 
@@ -54,26 +52,6 @@ def random_traffic(seed: int, vehicles: int, pedestrians: int, minutes: float) -
     return tracks
 
 
-def child(raw: str, out: str, recordings: list[str]) -> None:
-    """Run one ingest in this process and print its wall time, peak RSS and sample count as JSON."""
-    from trajflow_pipeline.schemas import open_dataset
-    from trajflow_pipeline.ingest.round import ingest_round
-
-    start = time.perf_counter()
-    ingest_round(raw, out, recordings=recordings or None, overwrite=True, quiet=True)
-    seconds = time.perf_counter() - start
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    ds = open_dataset(out)
-    print(json.dumps({"seconds": seconds, "peak_rss_mb": peak_mb, "samples": ds.counts["samples"],
-                      "track_rows": ds.counts["tracks"]}))
-
-
-def run_child(raw: Path, out: Path, recordings: list[str]) -> dict:
-    command = [sys.executable, __file__, "--child", str(raw), str(out), *recordings]
-    result = subprocess.run(command, check=True, capture_output=True, text=True)
-    return json.loads(result.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--recordings", type=int, default=4)
@@ -81,11 +59,7 @@ def main() -> None:
     parser.add_argument("--pedestrians", type=int, default=600)
     parser.add_argument("--minutes", type=float, default=40.0)
     parser.add_argument("--keep", type=Path, default=None, help="write the raw recordings here and keep them")
-    parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.child:
-        child(args.child[0], args.child[1], args.child[2:])
-        return
     workdir = Path(tempfile.mkdtemp(prefix="round-bench-"))
     raw = args.keep or workdir / "raw"
     try:
@@ -95,16 +69,11 @@ def main() -> None:
             tracks = random_traffic(number, args.vehicles, args.pedestrians, args.minutes)
             write_recording(raw, number, tracks, location_id=number % 3)
             rows.append(sum(len(track.positions) for track in tracks))
-        size = sum(p.stat().st_size for p in raw.glob("*_tracks.csv")) / 2 ** 20
-        print(f"generated {args.recordings} recordings, {sum(rows):,} raw rows ({', '.join(f'{r:,}' for r in rows)}),"
-              f" {size:.0f} MiB of tracks CSV in {time.perf_counter() - start:.1f} s")
-        one = run_child(raw, workdir / "one", ["0"])
-        every = run_child(raw, workdir / "all", [])
-        for label, result, raw_rows in (("1 recording ", one, rows[0]), (f"{args.recordings} recordings", every,
-                                                                         sum(rows))):
-            print(f"{label}: {raw_rows:,} raw rows -> {result['track_rows']:,} rows at 5 Hz, {result['samples']:,} "
-                  f"samples in {result['seconds']:.1f} s = {raw_rows / result['seconds']:,.0f} raw rows/s; "
-                  f"peak RSS {result['peak_rss_mb']:.0f} MiB")
+        print_generated(rows, raw, time.perf_counter() - start)
+        options = {}
+        one = run_ingest("round", raw, workdir / "one", ["0"], options)
+        every = run_ingest("round", raw, workdir / "all", [], options)
+        print_results(rows, one, every)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
 
