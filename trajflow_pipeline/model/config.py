@@ -23,6 +23,7 @@ from typing import Any
 from ..errors import DataError, UsageError
 from ..util import input_files
 from ..util.bounds import SEED, bounded, check_value
+from ..util.options import parse_value
 
 #: Model families selectable with ``--model``; see :mod:`trajflow_pipeline.model.models`.
 MODEL_NAMES: tuple[str, ...] = ("trajflow", "trajflow-no-ae", "flomo", "cv")
@@ -297,7 +298,7 @@ def apply_overrides(config: RunConfig, overrides: typing.Sequence[str]) -> RunCo
         key, raw = (part.strip() for part in item.split("=", 1))
         section, name = _resolve_key(key)
         values.pop(f"{section}.{name}", None)  # the last --set of a setting wins, however it is spelled
-        values[f"{section}.{name}"] = _parse_value(raw)
+        values[f"{section}.{name}"] = parse_value(raw)
     return with_values(config, values, source="--set")
 
 
@@ -352,13 +353,6 @@ def _resolve_key(key: str) -> tuple[str, str]:
         raise UsageError(f"unknown config key {key!r}" if not owners else
                          f"ambiguous config key {key!r}; write {owners[0]}.{key} or {owners[1]}.{key}")
     return owners[0], key
-
-
-def _parse_value(raw: str) -> Any:
-    try:
-        return tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        return raw
 
 
 def _section(cls: type, values: Any, section: str, source: str) -> Any:

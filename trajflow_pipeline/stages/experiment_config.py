@@ -50,7 +50,7 @@ from .evaluate import EvalOptions
 from ..util import input_files
 from ..util.atomic import atomic_write_text
 from ..util.bounds import check_seed
-from ..util.options import keyword_options, option_value
+from ..util.options import keyword_options, option_value, parse_value
 
 #: the ingests an experiment config may name: every registered one (ingest/registry.py)
 INGESTS = NAMES
@@ -254,10 +254,7 @@ def apply_overrides(raw: dict[str, Any], overrides: Sequence[str], path: Path) -
         parts = key.strip().split(".")
         if not sep or not all(parts):
             raise UsageError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY, e.g. data.raw=PATH")
-        try:
-            value = tomllib.loads(f"value = {text.strip()}")["value"]
-        except tomllib.TOMLDecodeError:
-            value = text.strip()
+        value = parse_value(text)
         target: Any = result
         for depth, part in enumerate(parts[:-1]):
             target = _item(target, part, item, ".".join(parts[:depth]))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import tomllib
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
@@ -14,6 +15,15 @@ from ..errors import UsageError
 _NOT_OPTIONS = ("overwrite", "quiet")
 #: the default of an option that has none (it must be given)
 REQUIRED = inspect.Parameter.empty
+
+
+def parse_value(text: str) -> Any:
+    """The VALUE of a ``--set KEY=VALUE``: TOML syntax (``50``, ``[1, 2]``, ``true``, ``"007"``), or else the text
+    itself as a string (``--set data.raw=/data/eth ucy``)."""
+    try:
+        return tomllib.loads(f"value = {text.strip()}")["value"]
+    except tomllib.TOMLDecodeError:
+        return text.strip()
 
 
 def keyword_options(function: Callable[..., Any]) -> dict[str, Any]:
