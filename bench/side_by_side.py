@@ -17,10 +17,14 @@ HERE = Path(__file__).resolve().parents[1]
 
 
 def figures(script: Path, args: list[str], tree: Path) -> dict[str, tuple[float, str]]:
-    """One run of `script` (this checkout's file) against the package in `tree`; its figures."""
+    """One run of `script` (this checkout's file) against the package in `tree`; its figures. The run's notes
+    (stderr lines starting with "# ", e.g. compile times) are passed on, prefixed with the tree."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     done = subprocess.run([sys.executable, str(script), *args, "--figures-json"], env=env, check=True,
                           capture_output=True, text=True)
+    for line in done.stderr.splitlines():
+        if line.startswith("# "):
+            print(f"# {tree}: {line[2:]}", flush=True)
     return {name: (float(value), kind) for name, (value, kind) in json.loads(done.stdout.splitlines()[-1]).items()}
 
 

@@ -4,6 +4,7 @@
     python bench/train.py --threads 1 --repeats 5 --models trajflow
     python bench/train.py --no-cpu             # CUDA only
     python bench/train.py --models trajflow --against ../release   # against an earlier release's worktree
+    python bench/train.py --models trajflow --compile-flow         # flow stage compiled (train.compile_flow)
 
 Training: samples/s of one optimisation step per stage (loss, backward, finiteness check, fused AdamW) at batch
 128 on ETH/UCY-shaped problems (8 past, 12 future steps) with up to 0, 8 and 24 neighbours (80% of them present).
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -52,6 +54,10 @@ def best_time(fn: Callable[[], object], repeats: int, inner: int, sync: Callable
     return wall, cpu
 
 
+#: set by --compile-flow: the flow stage's steps run compiled (train.compile_flow = "on"), where the tree has it
+COMPILE_FLOW = False
+
+
 def training_rate(name: str, stage: str, neighbours: int, device: torch.device, repeats: int,
                   sync: Callable[[], None]) -> tuple[float, float]:
     """Samples per second of the training step of `stage` at batch 128 (by wall time, by CPU time)."""
@@ -61,6 +67,12 @@ def training_rate(name: str, stage: str, neighbours: int, device: torch.device, 
     keep = {id(p) for p in params}
     for p in model.parameters():
         p.requires_grad_(id(p) in keep)
+    compile_stage = getattr(model, "compile_stage", None)       # releases before it train eager
+    if COMPILE_FLOW and stage == "flow" and compile_stage is not None:
+        start = time.perf_counter()
+        failure = compile_stage(stage, 128)
+        print(f"# {name} {stage} {neighbours} neighbours: "
+              f"{failure or f'compiled in {time.perf_counter() - start:.0f} s'}", file=sys.stderr)
     optimizer = adamw(params, 1e-4, 1e-5)
     batch = with_fixed_targets(model, stage, crowd_batch(128, neighbours=neighbours, seed=1).to(device))
 
@@ -132,12 +144,17 @@ def main() -> None:
     parser.add_argument("--against", type=Path, help="also measure the package in this tree (a git worktree), "
                                                      "alternating, and print the ratios (CPU, first --threads)")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --against")
+    parser.add_argument("--compile-flow", action="store_true",
+                        help="flow-stage steps compiled, as train.compile_flow = \"on\" (trees without it: eager)")
     parser.add_argument("--figures-json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    global COMPILE_FLOW
+    COMPILE_FLOW = args.compile_flow
     if args.against is not None:
         from side_by_side import report_side_by_side
 
-        passed = ["--threads", str(args.threads[0]), "--repeats", str(args.repeats), "--models", *args.models]
+        passed = ["--threads", str(args.threads[0]), "--repeats", str(args.repeats), "--models", *args.models,
+                  *(["--compile-flow"] if args.compile_flow else [])]
         report_side_by_side(Path(__file__), passed, args.against, args.rounds)
         return
     tune_cpu_allocator()

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from trajflow_pipeline.errors import UsageError
-from trajflow_pipeline.model.config import DataSpec, ModelConfig, RunConfig, StageSchedule, TrainConfig, load_config
+from trajflow_pipeline.model.config import (COMPILE_MIN_STEPS, DataSpec, ModelConfig, RunConfig, StageSchedule,
+                                           TrainConfig, load_config)
 
 
 def test_defaults_are_the_papers_values() -> None:
@@ -82,6 +83,7 @@ def test_bad_config_files(tmp_path: Path, text: str, message: str) -> None:
     ("model.gnn_aggregate=max", "gnn_aggregate must be one of sum, mean, not 'max'"),
     ("train.flow_select_samples=1", "train.flow_select_samples must be an integer >= 2, got 1"),
     ("train.flow_select_every=0", "train.flow_select_every must be an integer >= 1, got 0"),
+    ("train.compile_flow=yes", "train.compile_flow must be one of auto, on, off, not 'yes'"),
 ])
 def test_bad_overrides(override: str, message: str) -> None:
     with pytest.raises(UsageError, match=message):
@@ -112,3 +114,12 @@ def test_the_last_override_of_a_setting_wins_however_it_is_spelled() -> None:
 
     config = apply_overrides(RunConfig(), ["train.flow_lr=0.2", "flow_lr=0.1", "train.flow_lr=0.3"])
     assert config.train.flow_lr == 0.3
+
+
+def test_compile_flow_auto_compiles_long_cpu_stages_only() -> None:
+    auto = load_config(None).train
+    assert auto.compile_flow == "auto"
+    assert auto.compiles_flow("cpu", COMPILE_MIN_STEPS) and not auto.compiles_flow("cpu", COMPILE_MIN_STEPS - 1)
+    assert not auto.compiles_flow("cuda", 10 ** 6)
+    assert load_config(None, ["train.compile_flow=on"]).train.compiles_flow("cuda", 1)
+    assert not load_config(None, ["train.compile_flow=off"]).train.compiles_flow("cpu", 10 ** 6)

@@ -7,6 +7,7 @@ import torch
 from zuko.flows.coupling import GeneralCouplingTransform
 from zuko.transforms import MonotonicRQSTransform
 
+from trajflow_pipeline.model import flow as flow_module
 from trajflow_pipeline.model.flow import (ConditionalSplineFlow, RationalQuadraticSpline, SplineCoupling,
                                          spline_inverse_columns)
 
@@ -109,6 +110,49 @@ def test_log_prob_on_rows_is_the_transform() -> None:
     grads = torch.autograd.grad(log_prob.sum(), list(flow.parameters()))
     assert torch.allclose(log_prob, expected, atol=1e-10)
     assert all(torch.allclose(a, b, atol=1e-9) for a, b in zip(grads, grads_ref))
+
+
+def test_compiled_training_is_the_eager_log_prob(monkeypatch: pytest.MonkeyPatch) -> None:
+    """compile_training's log-density (traced forward and backward graphs) gives eager values and gradients, and
+    only for batches of its size with gradients."""
+    monkeypatch.setattr(flow_module, "COMPILE_BACKEND", "aot_eager")
+    flow = _flow(sharpen=3.0)
+    x = torch.randn(32, 6, dtype=torch.float64) * 6
+    c = torch.randn(32, 4, dtype=torch.float64, requires_grad=True)
+    eager = flow.log_prob(x, c)
+    eager_grads = torch.autograd.grad(eager.sum(), [c, *flow.parameters()])
+    assert flow.compile_training(32) is None
+    calls = []
+    compiled = flow._compiled
+    flow._compiled = lambda *inputs: calls.append(1) or compiled(*inputs)
+    log_prob = flow.log_prob(x, c)
+    grads = torch.autograd.grad(log_prob.sum(), [c, *flow.parameters()])
+    assert calls == [1]
+    assert torch.allclose(log_prob, eager, atol=1e-10)
+    assert all(torch.allclose(a, b, atol=1e-9) for a, b in zip(grads, eager_grads))
+    flow.log_prob(x[:5], c[:5])                                     # another batch size: eager
+    with torch.no_grad():
+        flow.log_prob(x, c)                                         # no gradients: eager
+    flow.drop_compiled()
+    flow.log_prob(x, c)
+    assert calls == [1]
+    other = _flow(sharpen=2.0, seed=5)                  # the same structure, other weights: its own values
+    expected = other.log_prob(x, c)
+    assert other.compile_training(32) is None and torch.allclose(other.log_prob(x, c), expected, atol=1e-10)
+
+
+def test_a_flow_that_cannot_compile_says_why_and_stays_eager(monkeypatch: pytest.MonkeyPatch) -> None:
+    def without_compiler(function: object, **options: object) -> object:
+        def fails(*inputs: object) -> None:
+            raise RuntimeError("InductorError: no working C++ compiler found\ndetails")
+        return fails
+
+    monkeypatch.setattr(torch, "compile", without_compiler)
+    flow = _flow()
+    assert flow.compile_training(8) == "RuntimeError: InductorError: no working C++ compiler found"
+    x, c = torch.randn(8, 6, dtype=torch.float64), torch.randn(8, 4, dtype=torch.float64)
+    assert torch.allclose(flow.log_prob(x, c), flow.transform(c).call_and_ladj(x)[1]
+                          + torch.distributions.Normal(0.0, 1.0).log_prob(flow.to_base(x, c)).sum(-1))
 
 
 def test_spline_inverse_on_columns_is_the_spline_inverse() -> None:

@@ -18,6 +18,7 @@ import torch
 import trajflow_pipeline
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
+from trajflow_pipeline.model import flow as flow_module
 from trajflow_pipeline.model import load_model, load_training_state, save_training_state
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.normalize import target_frame, to_local
@@ -132,6 +133,26 @@ def test_run_directory_contents(monkeypatch: pytest.MonkeyPatch, tmp_path: Path)
     assert load_model(run / "final").name == "flomo"
     leftovers = [p.name for p in run.rglob("*") if ".tmp" in p.name]
     assert not leftovers
+
+
+def test_a_compiled_flow_stage_trains_as_eager_and_is_recorded(monkeypatch: pytest.MonkeyPatch,
+                                                                tmp_path: Path) -> None:
+    monkeypatch.setattr(flow_module, "COMPILE_BACKEND", "aot_eager")   # the traced graphs, without code generation
+    install_fake_data(monkeypatch, 96, 32)
+    options = [*FAST, *TINY_MODEL, "train.flow_max_epochs=2", "train.flow_batch_size=32"]
+    compiled = train(tmp_path / "data", tmp_path / "compiled", model="flomo", quiet=True,
+                     overrides=[*options, "train.compile_flow=on"])
+    eager = train(tmp_path / "data", tmp_path / "eager", model="flomo", quiet=True,
+                  overrides=[*options, "train.compile_flow=off"])
+    assert json.loads((compiled / "run.json").read_text())["compiled"]["flow"].startswith("compiled in ")
+    assert "compiled" not in json.loads((eager / "run.json").read_text())
+    for name, value in final_weights(eager).items():
+        assert torch.allclose(final_weights(compiled)[name], value, atol=1e-5), name
+    # where and how a run computes may change when it goes on: a raised budget, now eager
+    train(tmp_path / "data", compiled, model="flomo", quiet=True, resume=True,
+          overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=3", "train.flow_batch_size=32",
+                     "train.compile_flow=off"])
+    assert log_of(compiled).height == 3
 
 
 def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -495,6 +495,9 @@ class ConditionalSplineFlow(nn.Module):
             parts.append(SplineCoupling(features, context, mask.clone(), bins, tail_bound, hidden))
         # Maps data x to the base variable z.
         self.transform = LazyComposedTransform(*parts)
+        #: the compiled log-density with gradients of `_compiled_rows` rows (:meth:`compile_training`), or None
+        self._compiled: Callable[[Tensor, Tensor], Tensor] | None = None
+        self._compiled_rows = 0
 
     def fit_standardization(self, x: Tensor) -> None:
         """Set the input map from training vectors x (N, D): shift = mean, scale = standard deviation (a feature
@@ -529,10 +532,44 @@ class ConditionalSplineFlow(nn.Module):
     def log_prob(self, x: Tensor, context: Tensor) -> Tensor:
         """log p(x | context) in nats: x (B, D), context (B, C) -> (B,)."""
         if x.dim() == 2 and context.dim() == 2:
-            z, ladj = self._to_base_rows(self._in(x), context)
-        else:
-            z, ladj = self.transform(context).call_and_ladj(self._in(x))
+            if self._compiled is not None and x.shape[0] == self._compiled_rows and torch.is_grad_enabled():
+                return self._compiled(x, context)
+            return self._log_prob_rows(x, context)
+        z, ladj = self.transform(context).call_and_ladj(self._in(x))
         return standard_normal_log_prob(z) + ladj + self._log_scale()
+
+    def _log_prob_rows(self, x: Tensor, context: Tensor) -> Tensor:
+        """log_prob on rows x (B, D), context (B, C), through :meth:`_to_base_rows`."""
+        z, ladj = self._to_base_rows(self._in(x), context)
+        return standard_normal_log_prob(z) + ladj + self._log_scale()
+
+    def compile_training(self, rows: int) -> str | None:
+        """Compile the log-density with gradients for batches of `rows` rows (torch.compile, that one shape): what a
+        training step of the flow computes, evaluated afterwards by generated fused kernels (the same function to
+        float rounding). Other batch sizes and everything without gradients stay eager.
+
+        A flow step at batch 128 is bound by the number of its small operations, so this pays on CPUs: measured on
+        the 2-core Xeon, 1 thread, forward and backward 39.6 -> 14.8 ms, for a one-off 117 s (27 s with inductor's
+        cache from an earlier run). The compiled function is tried here once, forward and backward, on seeded
+        random inputs, so that a machine that cannot compile (no C++ compiler) finds out now: returns None when
+        compiled, else the reason, and the flow stays eager."""
+        parameter = next(self.parameters())
+        generator = torch.Generator(parameter.device).manual_seed(0)
+        x = torch.randn(rows, self.features, generator=generator, device=parameter.device, dtype=parameter.dtype)
+        context = torch.randn(rows, self.context, generator=generator, device=parameter.device,
+                              dtype=parameter.dtype, requires_grad=True)
+        compiled = torch.compile(self._log_prob_rows, backend=COMPILE_BACKEND, dynamic=False, fullgraph=True)
+        try:
+            trained = [p for p in self.parameters() if p.requires_grad]
+            torch.autograd.grad(compiled(x, context).sum(), [context, *trained])
+        except Exception as error:  # noqa: BLE001 -- compilers fail in many ways; every one means "stay eager"
+            return f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
+        self._compiled, self._compiled_rows = compiled, rows
+        return None
+
+    def drop_compiled(self) -> None:
+        """Back to the eager log-density for every batch."""
+        self._compiled, self._compiled_rows = None, 0
 
     def _to_base_rows(self, u: Tensor, context: Tensor) -> tuple[Tensor, Tensor]:
         """The normalising direction u -> z with its log-determinant (B,) on rows u (B, D), context (B, C).
@@ -601,6 +638,12 @@ def _permutation(part: nn.Module) -> PermutationTransform:
     if not isinstance(permutation, PermutationTransform):
         raise TypeError(f"unexpected flow part {permutation!r}")
     return permutation
+
+
+#: torch.compile's backend for :meth:`ConditionalSplineFlow.compile_training`: inductor generates the fused kernels;
+#: tests use "aot_eager", which traces the same forward and backward graphs without generating code (seconds, not
+#: the minute or two inductor takes on a 2-core CPU).
+COMPILE_BACKEND = "inductor"
 
 
 def standard_normal_log_prob(z: Tensor) -> Tensor:

@@ -118,6 +118,14 @@ class TrajectoryModel(nn.Module, abc.ABC):
         (the default)."""
         return None
 
+    def compile_stage(self, stage: str, rows: int) -> str | None:
+        """Compile what a training step of `stage` computes for batches of `rows` problems, where the family has
+        a compiled path (FlowModel: the flow stage's log-density); None when compiled, else why not."""
+        return f"{self.name} has no compiled path for its {stage} stage"
+
+    def drop_compiled(self) -> None:
+        """Back to eager evaluation everywhere (after :meth:`compile_stage`)."""
+
     def loss(self, batch: SceneBatch) -> Tensor:
         """The final stage's loss: mean negative log-likelihood (nats) in ``log_lik_space``."""
         return self.stage_loss(self.stages[-1], batch)
@@ -241,6 +249,14 @@ class FlowModel(TrajectoryModel):
         if stage in self.closed_form_stages:
             return []
         raise ValueError(f"unknown stage {stage!r} for {self.name}")
+
+    def compile_stage(self, stage: str, rows: int) -> str | None:
+        if stage != "flow":
+            return super().compile_stage(stage, rows)
+        return self.flow.compile_training(rows)
+
+    def drop_compiled(self) -> None:
+        self.flow.drop_compiled()
 
     def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
         if stage == "flow":

@@ -168,7 +168,8 @@ def _evaluation_warnings(runs: list[Run]) -> list[str]:
 
 
 #: config keys that say which run it is or where it ran, not how its model was made
-_RUN_IDENTITY = {("model", "name"), ("train", "seed"), ("train", "device"), ("train", "eval_batch_size")}
+_RUN_IDENTITY = {("model", "name"), ("train", "seed"), ("train", "device"), ("train", "compile_flow"),
+                 ("train", "eval_batch_size")}
 
 
 def _paper_deviations(runs: list[Run]) -> list[str]:

@@ -215,14 +215,28 @@ class Session(RunRecords):
             optimizer.load_state_dict(progress.optimizer)
         if scheduler is not None and progress.scheduler:
             scheduler.load_state_dict(progress.scheduler)
+        per_rank = math.ceil(n_train / self.dist.world)
+        n_batches = math.ceil(per_rank / schedule.batch_size)
+        planned = max(0, min(schedule.min_epochs, schedule.max_epochs) - progress.epoch) * n_batches
+        if stage == "flow" and cfg.compiles_flow(self.device.type, planned):
+            self._compile(stage, min(schedule.batch_size, per_rank))
         objective: nn.Module = StageObjective(self.model, stage)
         if self.dist.active:
             # Buffers (flow permutations, masks) never change while training: no per-step broadcast needed.
             objective = DistributedDataParallel(objective, device_ids=[self.device] if self.device.type == "cuda"
                                                 else None, broadcast_buffers=False)
-        per_rank = math.ceil(n_train / self.dist.world)
         return _GradientStage(index, stage, schedule, params, optimizer, scheduler, objective, select_subset,
-                              per_rank, n_batches=math.ceil(per_rank / schedule.batch_size))
+                              per_rank, n_batches)
+
+    def _compile(self, stage: str, rows: int) -> None:
+        """Compile the steps of `stage` for its full batches of `rows` problems, and record how it went."""
+        self._say(f"compiling the {stage} stage's steps (train.compile_flow = {self.config.train.compile_flow}; "
+                  f"a one-off cost)")
+        start = time.perf_counter()
+        failure = self.model.compile_stage(stage, rows)
+        self.compiled[stage] = (f"compiled in {time.perf_counter() - start:.0f} s" if failure is None
+                                else f"eager: {failure}")
+        self._say(f"{stage} stage: {self.compiled[stage]}")
 
     def _train_epoch(self, fit: _GradientStage, epoch: int, train_batch: SceneBatch, start: float, bars: Any,
                      batch_task: Any) -> tuple[float, int, float]:
@@ -297,6 +311,7 @@ class Session(RunRecords):
             end = replace(progress, selected_nll=fit.unscheduled[0], selected_epoch=fit.unscheduled[1],
                           best_weights=fit.unscheduled[2])
         self._checkpoint(fit.index, end, STAGE_END_FILE.format(stage=fit.name))
+        self.model.drop_compiled()
         if progress.best_weights is not None:
             self.model.load_state_dict(progress.best_weights)
         self.best[fit.name] = _best_record(progress, by_sample_nll=fit.select_subset is not None)

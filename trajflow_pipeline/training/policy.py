@@ -13,7 +13,7 @@ import polars as pl
 
 from ..errors import TrajflowError, UsageError
 from ..model.checkpoint import load_training_state
-from ..model.config import RunConfig, load_config
+from ..model.config import EXECUTION_KEYS, RunConfig, load_config
 from ..model.models import TrajectoryModel, build_model
 from ..rundir import (CONFIG_FILE, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained, read_run_config,
                       read_run_info)
@@ -23,7 +23,7 @@ from .data import TrainingData
 from .state import LOG_SCHEMA, check_state, progress_from, read_state, should_stop, state_config
 
 #: Training settings that act on the flow stage alone: a run may start from the autoencoder of a run that differs
-#: from it only in these (and the device).
+#: from it only in these (and in EXECUTION_KEYS: the device, compile_flow).
 FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs",
                    "flow_min_epochs", "flow_patience", "flow_select", "flow_select_every", "flow_select_problems",
                    "flow_select_samples", "flow_select_max_pooled")
@@ -39,8 +39,9 @@ RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
 
 def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] | None:
     """The epoch budgets `new` raises over `old` ({key: (old, new)}), or None when the two configs differ in
-    anything else (the device aside) or lower a budget; {} when they are the same run."""
-    old_train, new_train = replace(old.train, device="auto"), replace(new.train, device="auto")
+    anything else (EXECUTION_KEYS aside: the device, compile_flow) or lower a budget; {} when they are the same
+    run."""
+    old_train, new_train = old.train, new.train.with_execution_of(old.train)
     unchanged = replace(new_train, **{key: getattr(old_train, key) for key in BUDGET_KEYS})
     if old.model != new.model or unchanged != old_train:
         return None
@@ -121,12 +122,12 @@ def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, stat
     raises the config's is an earlier raise whose config.toml was not yet written: the run goes on with it.
     Any other difference is an error."""
     trained = state_config(run_dir / STATE_FILE, state)
-    device = config.train.device
-    if replace(trained, train=replace(trained.train, device=device)) == config:
+    trained = replace(trained, train=trained.train.with_execution_of(config.train))
+    if trained == config:
         return Resumption(config, state)
     if budget_raise(config, trained):
         say("continuing the larger budget an interrupted call gave this run")
-        return Resumption(replace(trained, train=replace(trained.train, device=device)), state, save=True)
+        return Resumption(trained, state, save=True)
     if budget_raise(trained, config) is None:
         raise TrajflowError(f"{run_dir / STATE_FILE}: checkpoint does not match {CONFIG_FILE}")
     start, reopened = _reopen(run_dir, config, model, state, trained, say)
@@ -242,7 +243,7 @@ def autoencoder_start(source: Path, config: RunConfig, data: TrainingData, fold:
     if state.get("model") != config.model.name:
         raise UsageError(f"{end_path}: a {state.get('model')!r} run; this run trains {config.model.name!r}")
     trained = state_config(end_path, state)
-    flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, "device")}
+    flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, *EXECUTION_KEYS)}
     comparable = replace(trained, train=replace(trained.train, **flow_settings))
     if comparable != config:
         raise UsageError(f"{source} trained its autoencoder with other settings "

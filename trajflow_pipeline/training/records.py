@@ -46,6 +46,8 @@ class RunRecords:
     #: the code revisions and the machines that trained this run, oldest first (see util.provenance)
     code_revisions: list[str] = field(default_factory=list)
     machines: list[str] = field(default_factory=list)
+    #: per stage whose steps were to run compiled (train.compile_flow): "compiled in N s" or why it trains eager
+    compiled: dict[str, str] = field(default_factory=dict)
     #: the run whose trained autoencoder this one started from (run.json "autoencoder_from"), if any
     autoencoder_from: dict[str, Any] | None = None
     #: the model being trained (built when the session runs)
@@ -148,6 +150,8 @@ class RunRecords:
             "started": self.started, "code_revisions": self.code_revisions, "machines": self.machines,
             "final": f"{FINAL_DIR}/{MODEL_FILE}" if status == "finished" else None,
         }
+        if self.compiled:
+            info["compiled"] = self.compiled
         if self.autoencoder_from is not None:
             info["autoencoder_from"] = self.autoencoder_from
         if status == "finished":
