@@ -8,8 +8,8 @@ from zuko.flows.coupling import GeneralCouplingTransform
 from zuko.transforms import MonotonicRQSTransform
 
 from trajflow_pipeline.model import flow as flow_module
-from trajflow_pipeline.model.flow import (ConditionalSplineFlow, RationalQuadraticSpline, SplineCoupling,
-                                         spline_inverse_columns)
+from trajflow_pipeline.model.flow import ConditionalSplineFlow, SplineCoupling
+from trajflow_pipeline.model.spline import RationalQuadraticSpline, spline_inverse_columns
 
 
 def _flow(features: int = 6, context: int = 4, sharpen: float = 1.0, seed: int = 0,
