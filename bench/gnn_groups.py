@@ -1,7 +1,7 @@
 """TrajFlow's flow-stage training step on real ETH/UCY batches (crowded, uneven scenes), and one whole flow epoch.
 
     python bench/gnn_groups.py [--data data/eth_ucy] [--fold eth] [--batches 10] [--repeats 3]
-    python bench/gnn_groups.py --against ../release [--rounds 3] [--epoch]
+    python bench/gnn_groups.py --against ../release [--rounds 3] [--epoch] [--compile-flow]
 
 Fold eth's training problems have 34 graph nodes on average and up to 75, so the social GNN's per-edge work and
 the node GRUs dominate a step on a CPU. The script times the forward and backward pass of the flow-stage loss on
@@ -10,7 +10,9 @@ per step over `--repeats` rounds, in CPU seconds of this process (this machine i
 ``--epoch`` it also trains one whole flow epoch of the fold (every training problem once, batch 128, AdamW,
 ``--epoch-threads`` torch threads, default 2) and prints its wall time. With ``--against TREE`` the same figures
 are measured for the package in TREE (an earlier release's `git worktree`) in alternating subprocess rounds and
-printed side by side (bench/side_by_side.py). The dataset is ingested with `trajflow ingest eth-ucy` first.
+printed side by side (bench/side_by_side.py). With ``--compile-flow`` the flow stage's compiled pieces are
+compiled first (train.compile_flow = "on"; the step and the epoch then use them; trees without them stay eager)
+and the compile time is printed. The dataset is ingested with `trajflow ingest eth-ucy` first.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import torch
 
 from trajflow_pipeline.model import ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.config import RunConfig
-from release_compat import adamw, load_data, with_fixed_targets
+from release_compat import adamw, compile_flow_stage, load_data, with_fixed_targets
 
 
 def step_seconds(data, model, batches: int, repeats: int) -> float:
@@ -72,6 +74,8 @@ def main() -> None:
     parser.add_argument("--epoch-threads", type=int, default=2, help="torch threads for --epoch (default 2)")
     parser.add_argument("--against", type=Path, help="also measure the package in this tree, alternating")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --against")
+    parser.add_argument("--compile-flow", action="store_true",
+                        help="flow-stage steps compiled, as train.compile_flow = \"on\" (trees without it: eager)")
     parser.add_argument("--figures-json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.against is not None:
@@ -79,13 +83,15 @@ def main() -> None:
 
         epoch = ["--epoch", "--epoch-threads", str(args.epoch_threads)] if args.epoch else []
         passed = ["--data", args.data, "--fold", args.fold, "--batches", str(args.batches), "--repeats",
-                  str(args.repeats), *epoch]
+                  str(args.repeats), *epoch, *(["--compile-flow"] if args.compile_flow else [])]
         report_side_by_side(Path(__file__), passed, args.against, args.rounds)
         return
     tune_cpu_allocator()  # as `trajflow train` does
     data = load_data(args.data, args.fold, RunConfig())
     torch.manual_seed(0)
     model = build_model(ModelConfig(name="trajflow"), data.spec).train()
+    if args.compile_flow:
+        compile_flow_stage(model, 128, f"fold {args.fold} flow stage")
     found = {f"fold {args.fold} flow step, batch 128, 1 thread, CPU s": [step_seconds(data, model, args.batches,
                                                                                         args.repeats), "time"]}
     if args.epoch:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -31,7 +30,7 @@ import torch
 
 from trajflow_pipeline.model import DataSpec, ModelConfig, build_model, tune_cpu_allocator
 from trajflow_pipeline.model.toy import crowd_batch
-from release_compat import adamw, finite_gradients, with_fixed_targets
+from release_compat import adamw, compile_flow_stage, finite_gradients, with_fixed_targets
 
 SPEC = DataSpec(n_past=8, n_future=12, dataset="bench", dt=0.4)
 
@@ -67,12 +66,8 @@ def training_rate(name: str, stage: str, neighbours: int, device: torch.device, 
     keep = {id(p) for p in params}
     for p in model.parameters():
         p.requires_grad_(id(p) in keep)
-    compile_stage = getattr(model, "compile_stage", None)       # releases before it train eager
-    if COMPILE_FLOW and stage == "flow" and compile_stage is not None:
-        start = time.perf_counter()
-        failure = compile_stage(stage, 128)
-        print(f"# {name} {stage} {neighbours} neighbours: "
-              f"{failure or f'compiled in {time.perf_counter() - start:.0f} s'}", file=sys.stderr)
+    if COMPILE_FLOW and stage == "flow":
+        compile_flow_stage(model, 128, f"{name} {stage} {neighbours} neighbours")
     optimizer = adamw(params, 1e-4, 1e-5)
     batch = with_fixed_targets(model, stage, crowd_batch(128, neighbours=neighbours, seed=1).to(device))
 

@@ -8,6 +8,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from trajflow_pipeline.model import compiled as compiled_module
 from trajflow_pipeline.model.autoencoder import TrajectoryAutoencoder
 from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
@@ -383,6 +384,63 @@ def test_packed_groups_give_the_one_group_readout(aggregate: str) -> None:
     for result in results[1:]:
         for value, expected in zip(result, results[0]):
             assert torch.allclose(value, expected, rtol=1e-9, atol=1e-10)
+
+
+def test_the_compiled_edge_block_gives_the_eager_rounds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """SocialGNN.compile_edges (traced forward and backward graphs, dynamic shapes) gives the eager encodings and
+    gradients on groups of several sizes; groups of few edges, and rounds without gradients, stay eager; drop_compiled goes back to eager everywhere (float64)."""
+    monkeypatch.setattr(compiled_module, "COMPILE_BACKEND", "aot_eager")
+    torch.manual_seed(0)
+    gnn = SocialGNN().double()
+    batch, n = 17, 8
+    mask = torch.rand(batch, n) < torch.linspace(0.05, 0.9, batch)[:, None]
+    mask[:, 0] = True
+    mask[0, 1:] = False                                                          # alone: a group of extent 1
+    past = 3 * torch.randn(batch, n, 8, 2, dtype=torch.float64)
+    valid = torch.ones(batch, n, 8, dtype=torch.bool) & mask[..., None]
+    types = torch.randint(0, 5, (batch, n))
+    monkeypatch.setattr(SocialGNN, "GROUP_EDGES", 3 * n * n)                     # groups of 3 or fewer
+    monkeypatch.setattr(SocialGNN, "GROUP_PADDING", 3 * n * n)
+    monkeypatch.setattr(SocialGNN, "COMPILED_MIN_EDGES", 12)                    # small groups stay eager
+
+    def encode() -> tuple[torch.Tensor, ...]:
+        leaf = past.clone().requires_grad_(True)
+        gnn.zero_grad()
+        out = gnn(leaf, valid, mask, types)
+        (out ** 2).sum().backward()
+        return out.detach(), leaf.grad, gnn.msg_edge.weight.grad.clone(), gnn.msg_sender[0].weight.grad.clone()
+
+    eager = encode()
+    assert gnn.compile_edges() is None
+    shapes = []
+    compiled = gnn._compiled_pool
+    gnn._compiled_pool = lambda *inputs: shapes.append(tuple(inputs[0].shape[:2])) or compiled(*inputs)
+    for value, expected in zip(encode(), eager):
+        assert torch.allclose(value, expected, rtol=1e-10, atol=1e-12)
+    assert shapes and all(members * extent * extent > 12 for members, extent in shapes)
+    assert len(set(shapes)) > 1                                                  # one compiled block, many shapes
+    calls = len(shapes)
+    with torch.no_grad():
+        gnn(past, valid, mask, types)
+    gnn.drop_compiled()
+    encode()
+    assert len(shapes) == calls
+
+
+def test_a_gnn_that_cannot_compile_says_why_and_its_model_stays_eager(monkeypatch: pytest.MonkeyPatch) -> None:
+    def without_compiler(function: object, **options: object) -> object:
+        def fails(*inputs: object) -> None:
+            raise RuntimeError("InductorError: no working C++ compiler found\ndetails")
+        return fails
+
+    monkeypatch.setattr(torch, "compile", without_compiler)
+    gnn = SocialGNN()
+    assert gnn.compile_edges() == "RuntimeError: InductorError: no working C++ compiler found"
+    assert gnn._compiled_pool is None
+    model = _model("trajflow")
+    monkeypatch.setattr(type(model.flow), "compile_training", lambda flow, rows: setattr(flow, "_compiled", len))
+    assert model.compile_stage("flow", 8) == "RuntimeError: InductorError: no working C++ compiler found"
+    assert model.flow._compiled is None                     # all or nothing: the flow compiled, then dropped
 
 
 def test_each_component_starts_from_its_own_random_stream() -> None:

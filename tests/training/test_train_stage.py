@@ -18,7 +18,7 @@ import torch
 import trajflow_pipeline
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
-from trajflow_pipeline.model import flow as flow_module
+from trajflow_pipeline.model import compiled as compiled_module
 from trajflow_pipeline.model import load_model, load_training_state, save_training_state
 from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.normalize import target_frame, to_local
@@ -137,7 +137,7 @@ def test_run_directory_contents(monkeypatch: pytest.MonkeyPatch, tmp_path: Path)
 
 def test_a_compiled_flow_stage_trains_as_eager_and_is_recorded(monkeypatch: pytest.MonkeyPatch,
                                                                 tmp_path: Path) -> None:
-    monkeypatch.setattr(flow_module, "COMPILE_BACKEND", "aot_eager")   # the traced graphs, without code generation
+    monkeypatch.setattr(compiled_module, "COMPILE_BACKEND", "aot_eager")   # the traced graphs, without code generation
     install_fake_data(monkeypatch, 96, 32)
     options = [*FAST, *TINY_MODEL, "train.flow_max_epochs=2", "train.flow_batch_size=32"]
     compiled = train(tmp_path / "data", tmp_path / "compiled", model="flomo", quiet=True,

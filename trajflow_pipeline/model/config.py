@@ -184,8 +184,9 @@ class TrainConfig:
     grad_clip: float = bounded(0.0, ge=0)
     #: Batch size used for validation passes (no gradients, so it can be larger).
     eval_batch_size: int = bounded(256, ge=1)
-    #: Run the flow stage's training steps through a compiled log-density (torch.compile; the same function to
-    #: float rounding, needs a C++ compiler): "on", "off", or "auto" -- on a CPU, when the stage surely runs
+    #: Run the flow stage's training steps through a compiled log-density and, where the model has a social GNN,
+    #: a compiled edge block (torch.compile; the same function to float rounding, needs a C++ compiler): "on",
+    #: "off", or "auto" -- on a CPU, when the stage surely runs
     #: COMPILE_MIN_STEPS steps or more, so that the one-off compile pays for itself. A machine that cannot
     #: compile trains eager and says so.
     compile_flow: str = "auto"

@@ -10,13 +10,14 @@ Everything is batched over problems and neighbours with masks; N (neighbours) ma
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
 from .batch import NUM_AGENT_TYPES, SceneBatch
+from .compiled import compile_probed
 from .config import GNN_AGGREGATES
 from .gru import gru_outputs
 from .normalize import Frame, past_displacements, to_local
@@ -71,6 +72,8 @@ class SocialGNN(nn.Module):
         self.update = nn.ModuleList(nn.Sequential(nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, width))
                                     for _ in range(layers))
         self.out_features = width
+        #: :func:`pool_edges` compiled for dynamic shapes (:meth:`compile_edges`), or None
+        self._compiled_pool: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor] | None = None
 
     #: how problems are grouped on a CPU (see `forward`): a group grows, in order of size, while its padded edge
     #: tensors stay near the cache (at most GROUP_EDGES edges; measured on the 2-core AMD EPYC: an edge layer's
@@ -142,11 +145,10 @@ class SocialGNN(nn.Module):
             # A padding sender's term is -inf, so its edges are exactly 0 after the ReLU (and pass no gradient).
             from_b = (sender(x) + sender_term).masked_fill(padding, float("-inf"))                 # (R, width)
             to_a = receiver(x) + receiver_term
-            pooled = []
-            for (members, extent), from_g, to_g, dist in zip(shapes, from_b.split(sizes), to_a.split(sizes), dists):
-                from_g, to_g = from_g.view(members, extent, -1), to_g.view(members, extent, -1)
-                hidden = torch.addcmul(to_g[:, :, None, :], dist, w_dist).add_(from_g[:, None, :, :])
-                pooled.append(hidden.relu_().sum(2).reshape(members * extent, -1))
+            pooled = [self._pool_edges(to_g.view(members, extent, -1), from_g.view(members, extent, -1), dist, w_dist)
+                      .reshape(members * extent, -1)
+                      for (members, extent), from_g, to_g, dist in zip(shapes, from_b.split(sizes), to_a.split(sizes),
+                                                                       dists)]
             x = update(torch.cat((x, self._message(torch.cat(pooled), senders, out)), dim=-1)) + x
         weights = real.to(x.dtype)[:, None]
         summed = x.new_zeros(batch, x.shape[-1]).index_add_(0, problem, x * weights)
@@ -161,6 +163,47 @@ class SocialGNN(nn.Module):
             x = self._sparse_rounds(x, pos, onehot, mask)
         weights = mask.to(x.dtype)
         return (x * weights[..., None]).sum(1) / weights.sum(1, keepdim=True).clamp(min=1.0)
+
+    #: groups of more edges than this take the compiled edge block (:meth:`compile_edges`); smaller ones stay
+    #: eager, where the compiled call's fixed cost (measured on the 2-core Xeon, 1 thread: about 0.1-0.5 ms per
+    #: forward and backward) outweighs what it saves. It is also where inductor switches to other kernels, which
+    #: would be a second compile, as would a group of one problem (torch.compile specialises sizes of 1).
+    COMPILED_MIN_EDGES = 4096
+
+    def _pool_edges(self, to_a: Tensor, from_b: Tensor, dist: Tensor, w_dist: Tensor) -> Tensor:
+        """:func:`pool_edges`, compiled where :meth:`compile_edges` made it so, gradients are on and the group has
+        more than COMPILED_MIN_EDGES edges."""
+        members, extent = to_a.shape[:2]
+        if (self._compiled_pool is not None and torch.is_grad_enabled() and members > 1 and extent > 1
+                and members * extent * extent > self.COMPILED_MIN_EDGES):
+            return self._compiled_pool(to_a, from_b, dist, w_dist)
+        return pool_edges(to_a, from_b, dist, w_dist)
+
+    def compile_edges(self) -> str | None:
+        """Compile the edge block (:func:`pool_edges`, forward and backward) for any group shape (torch.compile
+        with dynamic shapes): the one piece of a crowded step that runs per edge. Eager, it is half of a fold-eth
+        flow step, spent in memory-bound passes over (g, k, k, width) temporaries; compiled, the pre-activations
+        are recomputed in registers and never stored. Tried once here on random inputs; returns None when
+        compiled, else the reason (the block stays eager). Only groups of more than COMPILED_MIN_EDGES edges
+        take it."""
+        weight = self.msg_edge.weight
+        generator = torch.Generator(weight.device).manual_seed(0)
+        width = self.out_features
+
+        def probe(pool: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]) -> None:
+            members, extent = 4, 40                          # 6400 edges: a group that takes the compiled block
+            options = dict(generator=generator, device=weight.device, dtype=weight.dtype)
+            to_a, from_b = (torch.randn(members, extent, width, requires_grad=True, **options) for _ in range(2))
+            dist = torch.rand(members, extent, extent, 1, **options)
+            w_dist = torch.randn(width, requires_grad=True, **options)
+            torch.autograd.grad(pool(to_a, from_b, dist, w_dist).sum(), [to_a, from_b, w_dist])
+
+        self._compiled_pool, failure = compile_probed(pool_edges, probe, dynamic=True)
+        return failure
+
+    def drop_compiled(self) -> None:
+        """Back to the eager edge block."""
+        self._compiled_pool = None
 
     def _message(self, pooled: Tensor, senders: Tensor, out: nn.Linear) -> Tensor:
         """A node's message from the sum of its senders' hidden edge terms (`pooled`) and their count: the sum of
@@ -182,7 +225,7 @@ class SocialGNN(nn.Module):
         types = onehot.shape[-1]
         weight = self.msg_edge.weight
         w_sender, w_receiver = weight[:, :types], weight[:, types:2 * types]
-        w_rel, w_dist = weight[:, 2 * types:2 * types + 2], weight[:, 2 * types + 2]
+        w_rel, w_dist = weight[:, 2 * types:2 * types + 2], weight[:, 2 * types + 2].contiguous()  # as compiled
         sender = F.linear(onehot, w_sender) - F.linear(pos, w_rel)
         receiver = F.linear(onehot, w_receiver) + F.linear(pos, w_rel)
         return sender, receiver, w_dist
@@ -207,8 +250,7 @@ class SocialGNN(nn.Module):
             # the masked sum over senders is a plain sum over the sender axis.
             from_b = (sender(x) + sender_term).masked_fill(padding, float("-inf"))                # (B, n_b, width)
             to_a = receiver(x) + receiver_term                                                    # (B, n_a, width)
-            hidden = (from_b[:, None, :, :] + to_a[:, :, None, :]).addcmul_(dist, w_dist).relu_()
-            pooled = hidden.sum(2)                                                                # (B, n_a, width)
+            pooled = self._pool_edges(to_a, from_b, dist, w_dist)                                 # (B, n_a, width)
             x = update(torch.cat((x, self._message(pooled, senders, out)), dim=-1)) + x
         return x
 
@@ -292,6 +334,14 @@ class ContextEncoder(nn.Module):
                 raise ValueError("this model was trained with maps but the batch has no map_crop")
             parts.append(self.map(batch.map_crop))
         return torch.cat(parts, dim=-1)
+
+
+def pool_edges(to_a: Tensor, from_b: Tensor, dist: Tensor, w_dist: Tensor) -> Tensor:
+    """The edge block of a message round: sum_b ReLU(to_a + from_b + |p_a - p_b| w_dist) for every receiver a,
+    from receiver terms (g, k, width), sender terms (g, k, width; -inf for padding senders), distances
+    (g, k_a, k_b, 1) and the distance weight (width,) -> (g, k, width)."""
+    hidden = torch.addcmul(to_a[:, :, None, :], dist, w_dist).add_(from_b[:, None, :, :])
+    return hidden.relu_().sum(2)
 
 
 def size_groups(extents: list[int], max_edges: int, max_padding: int) -> list[tuple[int, int]]:

@@ -34,6 +34,7 @@ from zuko.lazy import LazyComposedTransform, UnconditionalTransform
 from zuko.nn import Linear as ZukoLinear
 from zuko.transforms import CouplingTransform, PermutationTransform
 
+from .compiled import compile_probed
 from .spline import RationalQuadraticSpline, spline_forward, spline_inverse_columns
 
 
@@ -282,14 +283,13 @@ class ConditionalSplineFlow(nn.Module):
         x = torch.randn(rows, self.features, generator=generator, device=parameter.device, dtype=parameter.dtype)
         context = torch.randn(rows, self.context, generator=generator, device=parameter.device,
                               dtype=parameter.dtype, requires_grad=True)
-        compiled = torch.compile(self._log_prob_rows, backend=COMPILE_BACKEND, dynamic=False, fullgraph=True)
-        try:
-            trained = [p for p in self.parameters() if p.requires_grad]
-            torch.autograd.grad(compiled(x, context).sum(), [context, *trained])
-        except Exception as error:  # noqa: BLE001 -- compilers fail in many ways; every one means "stay eager"
-            return f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
-        self._compiled, self._compiled_rows = compiled, rows
-        return None
+        trained = [p for p in self.parameters() if p.requires_grad]
+        compiled, failure = compile_probed(
+            self._log_prob_rows, lambda log_prob: torch.autograd.grad(log_prob(x, context).sum(), [context, *trained]),
+            dynamic=False)
+        if compiled is not None:
+            self._compiled, self._compiled_rows = compiled, rows
+        return failure
 
     def drop_compiled(self) -> None:
         """Back to the eager log-density for every batch."""
@@ -362,12 +362,6 @@ def _permutation(part: nn.Module) -> PermutationTransform:
     if not isinstance(permutation, PermutationTransform):
         raise TypeError(f"unexpected flow part {permutation!r}")
     return permutation
-
-
-#: torch.compile's backend for :meth:`ConditionalSplineFlow.compile_training`: inductor generates the fused kernels;
-#: tests use "aot_eager", which traces the same forward and backward graphs without generating code (seconds, not
-#: the minute or two inductor takes on a 2-core CPU).
-COMPILE_BACKEND = "inductor"
 
 
 def standard_normal_log_prob(z: Tensor) -> Tensor:

@@ -120,7 +120,8 @@ class TrajectoryModel(nn.Module, abc.ABC):
 
     def compile_stage(self, stage: str, rows: int) -> str | None:
         """Compile what a training step of `stage` computes for batches of `rows` problems, where the family has
-        a compiled path (FlowModel: the flow stage's log-density); None when compiled, else why not."""
+        a compiled path (FlowModel: the flow stage's log-density and the social GNN's edge block); None when
+        compiled, else why not."""
         return f"{self.name} has no compiled path for its {stage} stage"
 
     def drop_compiled(self) -> None:
@@ -253,10 +254,17 @@ class FlowModel(TrajectoryModel):
     def compile_stage(self, stage: str, rows: int) -> str | None:
         if stage != "flow":
             return super().compile_stage(stage, rows)
-        return self.flow.compile_training(rows)
+        failure = self.flow.compile_training(rows)
+        if failure is None and self.context.social is not None:
+            failure = self.context.social.compile_edges()
+        if failure is not None:
+            self.drop_compiled()   # all or nothing: one record says how the stage trains
+        return failure
 
     def drop_compiled(self) -> None:
         self.flow.drop_compiled()
+        if self.context.social is not None:
+            self.context.social.drop_compiled()
 
     def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
         if stage == "flow":
