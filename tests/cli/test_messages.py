@@ -31,7 +31,8 @@ def test_tables_show_cells_exactly(tmp_path: Path) -> None:
     data = ingest_synthetic_bimodal(tmp_path / "d [x] :100:", samples=40, seed=1, quiet=True)
     result = CliRunner().invoke(app, ["inspect", str(data)], env={"COLUMNS": "400"})
     assert result.exit_code == 0, result.output
-    assert "d [x] :100:" in result.output and "💯" not in result.output
+    # the table's title wraps to the table's width wherever the temporary path is long: compare without spaces
+    assert "d[x]:100:" in "".join(result.output.split()) and "💯" not in result.output
 
 
 @pytest.mark.parametrize("name", ["n" * 250, "é" * 127], ids=["250 ascii bytes", "254 utf-8 bytes"])

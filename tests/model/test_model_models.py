@@ -457,4 +457,5 @@ def test_each_component_starts_from_its_own_random_stream() -> None:
         if not name.startswith("autoencoder."):
             assert torch.equal(value, other_ae[name]), name
     assert not torch.equal(base["context.past.embed.weight"], weights(1)["context.past.embed.weight"])
-    assert all(torch.equal(value, weights(0)[name]) for name, value in base.items())
+    again = weights(0)
+    assert all(torch.equal(value, again[name]) for name, value in base.items())
