@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from compile_fakes import NO_COMPILER, without_compiler
 
 from trajflow_pipeline.model import compiled as compiled_module
 from trajflow_pipeline.model.autoencoder import TrajectoryAutoencoder
@@ -428,18 +429,13 @@ def test_the_compiled_edge_block_gives_the_eager_rounds(monkeypatch: pytest.Monk
 
 
 def test_a_gnn_that_cannot_compile_says_why_and_its_model_stays_eager(monkeypatch: pytest.MonkeyPatch) -> None:
-    def without_compiler(function: object, **options: object) -> object:
-        def fails(*inputs: object) -> None:
-            raise RuntimeError("InductorError: no working C++ compiler found\ndetails")
-        return fails
-
-    monkeypatch.setattr(torch, "compile", without_compiler)
+    without_compiler(monkeypatch)
     gnn = SocialGNN()
-    assert gnn.compile_edges() == "RuntimeError: InductorError: no working C++ compiler found"
+    assert gnn.compile_edges() == NO_COMPILER
     assert gnn._compiled_pool is None
     model = _model("trajflow")
     monkeypatch.setattr(type(model.flow), "compile_training", lambda flow, rows: setattr(flow, "_compiled", len))
-    assert model.compile_stage("flow", 8) == "RuntimeError: InductorError: no working C++ compiler found"
+    assert model.compile_stage("flow", 8) == NO_COMPILER
     assert model.flow._compiled is None                     # all or nothing: the flow compiled, then dropped
 
 
