@@ -20,7 +20,7 @@ from trajflow_pipeline.cli.app import app
 from trajflow_pipeline.errors import TrajflowError
 
 hypothesis = pytest.importorskip("hypothesis", reason="the fuzz suite needs hypothesis (the dev extra)")
-from hypothesis import example, given  # noqa: E402
+from hypothesis import example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from test_ingest_bad_input import write_flat_eth  # noqa: E402
@@ -120,6 +120,7 @@ NAMES = (st.text(st.characters(blacklist_categories=("Cs",), blacklist_character
 
 
 @given(NAMES)
+@settings(max_examples=max(10, settings.default.max_examples // 3))  # an example is four commands (15 s for 30)
 @example("run[1] *?.csv")
 @example(":100: [red]x[bold] :thumbs_up:")
 @example("é" * 127)             # 254 bytes
