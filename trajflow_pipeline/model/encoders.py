@@ -11,6 +11,7 @@ Everything is batched over problems and neighbours with masks; N (neighbours) ma
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -180,10 +181,11 @@ class SocialGNN(nn.Module):
         return pool_edges(to_a, from_b, dist, w_dist)
 
     def compile_edges(self) -> str | None:
-        """Compile the edge block (:func:`pool_edges`, forward and backward) for any group shape (torch.compile
-        with dynamic shapes): the one piece of a crowded step that runs per edge. Eager, it is half of a fold-eth
-        flow step, spent in memory-bound passes over (g, k, k, width) temporaries; compiled, the pre-activations
-        are recomputed in registers and never stored. Tried once here on random inputs; returns None when
+        """Compile the edge block (:func:`pool_edges`, forward and its written-out backward,
+        :func:`pool_edges_to_compile`) for any group shape (torch.compile with dynamic shapes): the one piece of a
+        crowded step that runs per edge. Eager, it is half of a fold-eth flow step, spent in memory-bound passes
+        over (g, k, k, width) temporaries; compiled, the pre-activations are recomputed in registers and never
+        stored. Tried once here on random inputs; returns None when
         compiled, else the reason (the block stays eager). Only groups of more than COMPILED_MIN_EDGES edges
         take it."""
         weight = self.msg_edge.weight
@@ -198,7 +200,7 @@ class SocialGNN(nn.Module):
             w_dist = torch.randn(width, requires_grad=True, **options)
             torch.autograd.grad(pool(to_a, from_b, dist, w_dist).sum(), [to_a, from_b, w_dist])
 
-        self._compiled_pool, failure = compile_probed(pool_edges, probe, dynamic=True)
+        self._compiled_pool, failure = compile_probed(pool_edges_to_compile, probe, dynamic=True)
         return failure
 
     def drop_compiled(self) -> None:
@@ -342,6 +344,45 @@ def pool_edges(to_a: Tensor, from_b: Tensor, dist: Tensor, w_dist: Tensor) -> Te
     (g, k_a, k_b, 1) and the distance weight (width,) -> (g, k, width)."""
     hidden = torch.addcmul(to_a[:, :, None, :], dist, w_dist).add_(from_b[:, None, :, :])
     return hidden.relu_().sum(2)
+
+
+def pool_edges_to_compile(to_a: Tensor, from_b: Tensor, dist: Tensor, w_dist: Tensor) -> Tensor:
+    """:func:`pool_edges` with the backward pass written out (:class:`_PooledEdges`), the form that is compiled."""
+    return _PooledEdges.apply(to_a, from_b, dist, w_dist)
+
+
+def _edge_preactivations(to_a: Tensor, from_b: Tensor, dist: Tensor, w_dist: Tensor) -> Tensor:
+    """to_a + from_b + dist w_dist on the (g, k_a, k_b, width) edge layout."""
+    return torch.addcmul(to_a[:, :, None, :], dist, w_dist) + from_b[:, None, :, :]
+
+
+class _PooledEdges(torch.autograd.Function):
+    """:func:`pool_edges` with its own backward. With G = [pre > 0] * grad_a on the edge layout, the gradients
+    are grad_to_a = sum_b G, grad_w = sum_(a, b) G dist_ab, grad_from_b = sum_a G and grad_dist = G . w. The sum
+    over a is taken on the transposed layout (sender first: the same pre-activations, from_b + to_a + dist^T w),
+    so both passes reduce over their layout's third axis. Compiled, each pass recomputes the pre-activations in
+    registers; measured on the 2-core Xeon (1 thread), the edge block's forward and backward on groups of 13k-17k
+    edges took 1.8-2.2x less time than the compiled autograd-derived backward, which reduces over a strided axis,
+    and a fold-eth flow step 1.19x less."""
+
+    @staticmethod
+    def forward(ctx: Any, to_a: Tensor, from_b: Tensor, dist: Tensor, w_dist: Tensor) -> Tensor:
+        ctx.save_for_backward(to_a, from_b, dist, w_dist)
+        return _edge_preactivations(to_a, from_b, dist, w_dist).relu().sum(2)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+        to_a, from_b, dist, w_dist = ctx.saved_tensors
+        active = (_edge_preactivations(to_a, from_b, dist, w_dist) > 0).to(grad.dtype)          # (g, a, b, width)
+        grad_to_a = grad * active.sum(2)
+        grad_w_dist = (grad * (active * dist).sum(2)).sum((0, 1))
+        # positions carry gradients only when something asks for them (never in training: they are data)
+        grad_dist = None
+        if ctx.needs_input_grad[2]:
+            grad_dist = (active * (grad * w_dist)[:, :, None, :]).sum(3, keepdim=True)
+        active_by_sender = (_edge_preactivations(from_b, to_a, dist.transpose(1, 2), w_dist) > 0).to(grad.dtype)
+        grad_from_b = (active_by_sender * grad[:, None, :, :]).sum(2)                              # (g, b, width)
+        return grad_to_a, grad_from_b, grad_dist, grad_w_dist
 
 
 def size_groups(extents: list[int], max_edges: int, max_padding: int) -> list[tuple[int, int]]:
