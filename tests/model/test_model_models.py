@@ -13,7 +13,8 @@ from trajflow_pipeline.model import compiled as compiled_module
 from trajflow_pipeline.model.autoencoder import TrajectoryAutoencoder
 from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
-from trajflow_pipeline.model.encoders import SocialGNN, compact_neighbours, size_groups, social_nodes
+from trajflow_pipeline.model.encoders import (SocialGNN, compact_neighbours, pool_edges, pool_edges_to_compile,
+                                             size_groups, social_nodes)
 from trajflow_pipeline.model.models import FloMo, build_model, extend_constant_velocity
 from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
@@ -426,6 +427,28 @@ def test_the_compiled_edge_block_gives_the_eager_rounds(monkeypatch: pytest.Monk
     gnn.drop_compiled()
     encode()
     assert len(shapes) == calls
+
+
+def test_the_written_out_edge_backward_is_autograds_when_positions_are_data() -> None:
+    """pool_edges_to_compile's own backward (as training takes it: distances without gradients, padding senders
+    at -inf) gives autograd's gradients of pool_edges for the receiver and sender terms and the distance weight."""
+    generator = torch.Generator().manual_seed(0)
+    members, extent, width = 3, 7, 5
+    pos = torch.randn(members, extent, 2, generator=generator, dtype=torch.float64)
+    dist = torch.sqrt(((pos[:, :, None] - pos[:, None]) ** 2).sum(-1, keepdim=True) + 1e-12)
+    to_a = torch.randn(members, extent, width, generator=generator, dtype=torch.float64)
+    from_b = torch.randn(members, extent, width, generator=generator, dtype=torch.float64)
+    from_b[:, extent - 2:] = float("-inf")
+    w_dist = torch.randn(width, generator=generator, dtype=torch.float64)
+    grad = torch.randn(members, extent, width, generator=generator, dtype=torch.float64)
+    results = []
+    for pool in (pool_edges, pool_edges_to_compile):
+        leaves = [t.clone().requires_grad_(True) for t in (to_a, from_b, w_dist)]
+        out = pool(leaves[0], leaves[1], dist, leaves[2])
+        results.append((out.detach(), *torch.autograd.grad(out, leaves, grad)))
+    for value, expected in zip(*reversed(results)):
+        assert torch.allclose(value, expected, rtol=1e-12, atol=1e-12)
+    assert torch.count_nonzero(results[1][2][:, extent - 2:]) == 0                # padding senders get nothing
 
 
 def test_a_gnn_that_cannot_compile_says_why_and_its_model_stays_eager(monkeypatch: pytest.MonkeyPatch) -> None:

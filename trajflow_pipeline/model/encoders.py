@@ -185,9 +185,8 @@ class SocialGNN(nn.Module):
         :func:`pool_edges_to_compile`) for any group shape (torch.compile with dynamic shapes): the one piece of a
         crowded step that runs per edge. Eager, it is half of a fold-eth flow step, spent in memory-bound passes
         over (g, k, k, width) temporaries; compiled, the pre-activations are recomputed in registers and never
-        stored. Tried once here on random inputs; returns None when
-        compiled, else the reason (the block stays eager). Only groups of more than COMPILED_MIN_EDGES edges
-        take it."""
+        stored. Tried once here on random inputs; returns None when compiled, else the reason (the block stays
+        eager). Only groups of more than COMPILED_MIN_EDGES edges take it."""
         weight = self.msg_edge.weight
         generator = torch.Generator(weight.device).manual_seed(0)
         width = self.out_features
