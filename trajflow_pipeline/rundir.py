@@ -11,6 +11,8 @@ Layout::
     RUN/checkpoints/end-<stage>.pt  the state at the last epoch of each finished gradient stage (what a larger
                                     epoch budget continues that stage from)
     RUN/checkpoints/best-<stage>.safetensors, lowest-val-loss-<stage>.safetensors   a stage's best weights so far
+    RUN/checkpoints/compiled-kernels.bin   the kernels torch.compile made for the run's compiled steps (a cache:
+                                    a resume loads them instead of generating them again; damaged, it is ignored)
     RUN/final/model.safetensors     the trained model (and model.json); final/ appears when training finished
     RUN/eval/                       eval.json, metrics.parquet, predictions.parquet, ground_truth.parquet
     RUN/eval-cache/, RUN/.eval.lock an evaluation in progress: its saved ROME fits, its claim
@@ -27,6 +29,7 @@ checkpoint (docs/results/publish.py publishes and restores such copies).
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +42,7 @@ from .model.checkpoint import MODEL_FILE, load_model
 from .model.config import RunConfig, load_config
 from .model.models import TrajectoryModel
 from .util import input_files
-from .util.atomic import atomic_write_text
+from .util.atomic import atomic_write_bytes, atomic_write_text
 
 CONFIG_FILE = "config.toml"
 RUN_FILE = "run.json"
@@ -53,6 +56,10 @@ STAGE_END_FILE = f"{CHECKPOINT_DIR}/end-{{stage}}.pt"
 #: The best weights of a stage so far by the run's selection rule, and by the validation loss alone.
 BEST_FILE = f"{CHECKPOINT_DIR}/best-{{stage}}.safetensors"
 LOWEST_VAL_LOSS_FILE = f"{CHECKPOINT_DIR}/lowest-val-loss-{{stage}}.safetensors"
+#: The kernels of the run's compiled training steps (:func:`write_compiled_kernels`).
+COMPILED_KERNELS_FILE = f"{CHECKPOINT_DIR}/compiled-kernels.bin"
+#: Its first line; the second is JSON: the torch version that compiled the kernels and the SHA-256 of the rest.
+_KERNELS_HEADER = b"trajflow compiled kernels 1\n"
 FINAL_DIR = "final"
 #: what final/ holds besides the weights: the best epochs and the weights' digest, for people
 MODEL_INFO_FILE = "model.json"
@@ -135,6 +142,36 @@ def read_run_config(run_dir: str | Path) -> RunConfig | None:
         raise DataError(str(error)) from None
     except OSError as error:
         raise DataError(f"unreadable ({error.strerror or error})", path) from None
+
+
+def write_compiled_kernels(run_dir: str | Path, kernels: bytes) -> None:
+    """Keep the kernels of the run's compiled steps (:func:`~.model.compiled.compiled_kernels`, atomically), stamped
+    with the torch version that made them and their digest."""
+    stamp = json.dumps({"torch": torch.__version__, "sha256": hashlib.sha256(kernels).hexdigest()})
+    atomic_write_bytes(Path(run_dir) / COMPILED_KERNELS_FILE, _KERNELS_HEADER + stamp.encode() + b"\n" + kernels)
+
+
+def read_compiled_kernels(run_dir: str | Path) -> tuple[bytes | None, str | None]:
+    """The run's kept kernels (None when it has none) and, when the file is there but cannot be used, why not in
+    one line: it is a cache, so a damaged or foreign file never stops a run (it compiles from scratch and the file
+    is replaced), and torch's own loader, which logs a traceback on damaged bytes, only ever sees checked ones."""
+    path = Path(run_dir) / COMPILED_KERNELS_FILE
+    if not path.is_file():
+        return None, None
+    try:
+        blob = path.read_bytes()
+    except OSError as error:
+        return None, f"{path}: unreadable ({error.strerror or error}); compiling from scratch"
+    stamp_line, _, kernels = blob[len(_KERNELS_HEADER):].partition(b"\n")
+    try:
+        stamp = json.loads(stamp_line) if blob.startswith(_KERNELS_HEADER) else None
+    except ValueError:
+        stamp = None
+    if not isinstance(stamp, dict) or stamp.get("sha256") != hashlib.sha256(kernels).hexdigest():
+        return None, f"{path}: damaged (not the kernels trajflow wrote); compiling from scratch"
+    if stamp.get("torch") != torch.__version__:
+        return None, f"{path}: compiled by torch {stamp.get('torch')}, this is {torch.__version__}; compiling anew"
+    return kernels, None
 
 
 def _short(value: Any) -> str:

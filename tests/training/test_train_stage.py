@@ -24,6 +24,7 @@ from trajflow_pipeline.model.config import load_config
 from trajflow_pipeline.model.normalize import target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
 from train_fakes import FakeProblems
+from trajflow_pipeline import rundir
 from trajflow_pipeline.rundir import open_run
 from trajflow_pipeline.training import loop as train_loop
 from trajflow_pipeline.training import train
@@ -153,6 +154,41 @@ def test_a_compiled_flow_stage_trains_as_eager_and_is_recorded(monkeypatch: pyte
           overrides=[*FAST, *TINY_MODEL, "train.flow_max_epochs=3", "train.flow_batch_size=32",
                      "train.compile_flow=off"])
     assert log_of(compiled).height == 3
+
+
+def test_a_run_keeps_its_compiled_kernels_and_a_resume_loads_them(monkeypatch: pytest.MonkeyPatch,
+                                                                    tmp_path: Path) -> None:
+    """What the compile made is kept in the run (stamped, checked) and handed to torch before a resume compiles;
+    a damaged file is named in one line, ignored and replaced. (The backend here generates no kernels, so torch's
+    artifacts are stood in for by known bytes; tests/model/test_model_compiled.py checks torch's side.)"""
+    monkeypatch.setattr(compiled_module, "COMPILE_BACKEND", "aot_eager")
+    made: list[bytes] = [b"kernels of the first process"]
+    loaded: list[bytes] = []
+    monkeypatch.setattr(train_loop, "compiled_kernels", lambda: made[-1])
+    monkeypatch.setattr(train_loop, "preload_kernels", loaded.append)
+    install_fake_data(monkeypatch, 96, 32)
+    options = [*FAST, *TINY_MODEL, "train.flow_batch_size=32", "train.compile_flow=on"]
+    run = train(tmp_path / "data", tmp_path / "run", model="flomo", quiet=True,
+                overrides=[*options, "train.flow_max_epochs=1"])
+    assert loaded == [] and rundir.read_compiled_kernels(run) == (made[0], None)
+
+    made.append(b"kernels of the second process")
+    train(tmp_path / "data", run, model="flomo", quiet=True, resume=True, overrides=[*options, "train.flow_max_epochs=2"])
+    assert loaded == [made[0]]
+    assert json.loads((run / "run.json").read_text())["compiled"]["flow"].endswith(" with the kernels the run had kept")
+    assert rundir.read_compiled_kernels(run) == (made[1], None)
+
+    kernels_file = run / rundir.COMPILED_KERNELS_FILE
+    kernels_file.write_bytes(kernels_file.read_bytes()[:-3])                           # cut short, as a full disk does
+    assert rundir.read_compiled_kernels(run)[1] == f"{kernels_file}: damaged (not the kernels trajflow wrote); " \
+                                                   f"compiling from scratch"
+    train(tmp_path / "data", run, model="flomo", quiet=True, resume=True, overrides=[*options, "train.flow_max_epochs=3"])
+    assert loaded == [made[0]] and log_of(run).height == 3
+    assert rundir.read_compiled_kernels(run) == (made[1], None)                           # replaced by a sound copy
+    stamped = kernels_file.read_bytes().replace(torch.__version__.encode(), b"0.0.1", 1)
+    kernels_file.write_bytes(stamped)
+    assert rundir.read_compiled_kernels(run)[1] == (f"{kernels_file}: compiled by torch 0.0.1, this is "
+                                                    f"{torch.__version__}; compiling anew")
 
 
 def test_resume_gives_the_uninterrupted_result(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -20,9 +20,11 @@ from torch.nn.parallel import DistributedDataParallel
 from ..errors import DataError, UsageError
 from ..model.batch import SceneBatch
 from ..model.checkpoint import save_model, save_training_state
+from ..model.compiled import compiled_kernels, preload_kernels
 from ..model.config import StageSchedule
 from ..model.models import build_model
-from ..rundir import BEST_FILE, CONFIG_FILE, FINAL_DIR, LOWEST_VAL_LOSS_FILE, STAGE_END_FILE, STATE_FILE, is_trained
+from ..rundir import (BEST_FILE, CONFIG_FILE, FINAL_DIR, LOWEST_VAL_LOSS_FILE, STAGE_END_FILE, STATE_FILE, is_trained,
+                      read_compiled_kernels, write_compiled_kernels)
 from ..util.atomic import atomic_write_text
 from ..util.progress import make_progress, say
 from .distributed import derive_seed, epoch_shard
@@ -229,14 +231,25 @@ class Session(RunRecords):
                               per_rank, n_batches)
 
     def _compile(self, stage: str, rows: int) -> None:
-        """Compile the steps of `stage` for its full batches of `rows` problems, and record how it went."""
+        """Compile the steps of `stage` for its full batches of `rows` problems, and record how it went. The
+        kernels the run kept from an earlier process are loaded first, and what this compile made is kept for the
+        next one (a resume, here or on another machine of the same kind), so code generation is paid once per run."""
         self._say(f"compiling the {stage} stage's steps (train.compile_flow = {self.config.train.compile_flow}; "
                   f"a one-off cost)")
         start = time.perf_counter()
+        kept, unusable = read_compiled_kernels(self.run_dir)
+        if unusable is not None:
+            self._say(unusable)
+        if kept is not None:
+            preload_kernels(kept)
         failure = self.model.compile_stage(stage, rows)
-        self.compiled[stage] = (f"compiled in {time.perf_counter() - start:.0f} s" if failure is None
+        reused = " with the kernels the run had kept" if kept is not None else ""
+        self.compiled[stage] = (f"compiled in {time.perf_counter() - start:.0f} s{reused}" if failure is None
                                 else f"eager: {failure}")
         self._say(f"{stage} stage: {self.compiled[stage]}")
+        made = compiled_kernels() if failure is None and self.writer else None
+        if made is not None and made != kept:
+            write_compiled_kernels(self.run_dir, made)
 
     def _train_epoch(self, fit: _GradientStage, epoch: int, train_batch: SceneBatch, start: float, bars: Any,
                      batch_task: Any) -> tuple[float, int, float]:
