@@ -233,7 +233,8 @@ class Session(RunRecords):
     def _compile(self, stage: str, rows: int) -> None:
         """Compile the steps of `stage` for its full batches of `rows` problems, and record how it went. The
         kernels the run kept from an earlier process are loaded first, and what this compile made is kept for the
-        next one (a resume, here or on another machine of the same kind), so code generation is paid once per run."""
+        next one (a resume, here or on another machine of the same kind), so inductor generates them once per run;
+        each process still traces the graphs, and on a machine with an empty cache builds the kept C++ again."""
         self._say(f"compiling the {stage} stage's steps (train.compile_flow = {self.config.train.compile_flow}; "
                   f"a one-off cost)")
         start = time.perf_counter()
