@@ -76,8 +76,9 @@ def test_the_ray_pool_retries_a_killed_worker_and_never_a_raised_error(tmp_path:
     with RayPool("auto", retries=2) as pool:
         dies = pool.submit(_die_once, str(tmp_path / "died"))
         fails = pool.submit(_fail_with_data_error, str(tmp_path / "attempts"))
-        assert dies.result(timeout=120) == 42
-        error = fails.exception(timeout=120)
+        # generous bounds against a hang, not speed checks: on a loaded 2-core machine a worker's restart took minutes
+        assert dies.result(timeout=900) == 42
+        error = fails.exception(timeout=900)
     assert (tmp_path / "died").exists()
     assert isinstance(error, DataError) and str(error) == "rows.csv: line 3: x is not a number"
     assert (tmp_path / "attempts").read_text() == "attempt\n", "a raised error must not be retried"
@@ -175,7 +176,9 @@ def test_a_run_with_a_bad_config_fails_once_with_its_one_line_error(tmp_path: Pa
     message = str(caught.value)
     assert message.startswith("2 of 2 run(s) failed: cv-all-s0: --steps 1 is shorter than"), message
     assert "\n" not in message and "Traceback" not in message and "ray::" not in message
-    assert time.perf_counter() - started < 120
+    # a hang guard only: that a raised error is never retried is counted exactly by the pool test above (one
+    # attempt); under load (a clean-clone CI beside two training runs) this took 319 s
+    assert time.perf_counter() - started < 900
     index = json.loads((tmp_path / "exp" / "experiment.json").read_text())
     assert index["runs"] == [] and len(index["planned"]) == 2
     assert not (tmp_path / "exp" / "runs" / "cv-all-s0" / "eval").exists()
