@@ -15,7 +15,8 @@ from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
 from trajflow_pipeline.model.encoders import (SocialGNN, compact_neighbours, pool_edges, pool_edges_to_compile,
                                              size_groups, social_nodes)
-from trajflow_pipeline.model.models import FloMo, build_model, extend_constant_velocity
+from trajflow_pipeline.model.models import (FloMo, build_model, extend_constant_velocity, scale_scene,
+                                             truncated_normal_scales)
 from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
 
@@ -184,9 +185,34 @@ def test_flomo_noise_and_scaling_only_while_training() -> None:
     assert torch.equal(model.loss(batch), model.loss(batch))
     model.train()
     assert not torch.equal(model.loss(batch), model.loss(batch))
-    factors = model._scale_factors(10000, batch.past)
+    factors = truncated_normal_scales(10000, *model.scale_augmentation(), like=batch.past)
     assert float(factors.min()) >= 0.3 and float(factors.max()) <= 1.7
     assert float(factors.mean()) == pytest.approx(1.0, abs=0.02)
+
+
+@pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae"])
+def test_scale_augmentation_trains_every_gradient_stage_on_scaled_scenes(name: str) -> None:
+    """model.scale_augment_std: while training, a stage's loss is the loss of the scenes scaled about t0 by factors
+    drawn from torch's generator (fixed targets of the unscaled futures dropped); off by default and in eval."""
+    batch, _ = bimodal_batch(24, n_past=8, n_future=12, neighbours=3)
+    plain = _model(name)
+    assert plain.scale_augmentation()[0] == 0.0
+    model = _model(name, scale_augment_std=0.4, scale_augment_min=0.5, scale_augment_max=2.0)
+    model.load_state_dict(plain.state_dict())
+    for stage in model.stages:
+        fixed = model.fixed_targets(stage, batch)
+        given = batch if fixed is None else replace(batch, targets=fixed)
+        assert torch.equal(model.stage_loss(stage, given), plain.stage_loss(stage, given))      # eval: no scaling
+        model.train()
+        torch.manual_seed(5)
+        augmented = model.stage_loss(stage, given)
+        torch.manual_seed(5)
+        factors = truncated_normal_scales(len(batch), 0.4, 0.5, 2.0, like=batch.past)
+        model.eval()
+        expected = model.stage_loss(stage, scale_scene(batch, factors))
+        assert float(factors.min()) >= 0.5 and float(factors.max()) <= 2.0 and float(factors.std()) > 0.1
+        assert torch.allclose(augmented, expected, rtol=1e-5, atol=1e-5)
+        assert not torch.allclose(augmented, plain.stage_loss(stage, given), rtol=1e-3, atol=1e-3)
 
 
 def _reference_rounds(gnn: SocialGNN, x: torch.Tensor, pos: torch.Tensor, onehot: torch.Tensor,

@@ -90,15 +90,15 @@ OURS = sorted((CONFIGS.parent / "ours").glob("*.toml"))
 def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Path) -> None:
     """configs/ours: a paper protocol (same data, folds, seeds and evaluation; its models, or those of them our
     change concerns, TrajFlow among them) with changes of ours to the flow model (the flow settings, which flow
-    weights training keeps, how the GNN that conditions it aggregates)."""
+    weights training keeps, how the GNN that conditions it aggregates, the scaling augmentation it trains with)."""
     ours = load_experiment(path)
     protocol = max((p for p in CONFIGS.glob("*.toml") if path.stem.startswith(p.stem + "_")), key=lambda p: len(p.stem))
     paper = load_experiment(protocol)
     for key in ("data_path", "ingest", "ingest_options", "folds", "seeds", "eval_options"):
         assert getattr(ours, key) == getattr(paper, key), key
     assert "trajflow" in ours.models and set(ours.models) <= set(paper.models)
-    assert ours.train_overrides and all(o.startswith(("model.flow_", "train.flow_select", "model.gnn_aggregate"))
-                                        for o in ours.train_overrides)
+    assert ours.train_overrides and all(o.startswith(("model.flow_", "train.flow_select", "model.gnn_aggregate",
+                                                      "model.scale_augment_")) for o in ours.train_overrides)
     load_config(overrides=list(ours.train_overrides))      # every override is a real, valid key
 
 

@@ -76,6 +76,14 @@ class ModelConfig:
     map_height: int = bounded(156, ge=41)
     map_width: int = bounded(257, ge=41)
     map_out: int = bounded(64, ge=1)
+    #: Not in the paper (trajflow and trajflow-no-ae): FloMo's scaling augmentation for the other flow models.
+    #: While training (every gradient stage, the autoencoder's too) each problem's scene is scaled about the
+    #: target's position at t0 by s ~ N(1, scale_augment_std) truncated to [scale_augment_min, scale_augment_max],
+    #: so that a location whose agents move faster or slower than the training locations' (ETH/UCY fold eth:
+    #: test steps about 1.75x the training median) is not outside everything the model saw. 0 = off.
+    scale_augment_std: float = bounded(0.0, ge=0)
+    scale_augment_min: float = bounded(0.3, gt=0, le=1)
+    scale_augment_max: float = bounded(1.7, ge=1)
     # FloMo training-time noise injection and scaling augmentation (model "flomo" only).
     flomo_beta: float = bounded(0.2, ge=0)
     flomo_gamma: float = bounded(0.02, ge=0)

@@ -34,7 +34,8 @@ def gru_outputs(gru: nn.GRU, inputs: Tensor) -> Tensor:
 class _GRU(torch.autograd.Function):
     """Forward, per layer on x (T, I, N): gi = W_ih x + b_ih + [b_hh_rz; 0] for all steps at once, then per step
     (r; z) = sigmoid(gi_rz + W_hh_rz h), gh_n = W_hh_n h + b_hh_n, n = tanh(gi_n + r gh_n), h <- n + z (h - n).
-    (b_hh_rz only ever adds to gi_rz, so it is folded into the one input projection.) Backward: the same
+    (b_hh_rz only ever adds to gi_rz, so it is folded into the one input projection; tanh is computed as
+    2 sigmoid(2u) - 1, ATen's sigmoid being several times faster than its tanh on a CPU.) Backward: the same
     recursion reversed, each layer's weight gradients as one batched product over all steps."""
 
     @staticmethod
@@ -46,8 +47,10 @@ class _GRU(torch.autograd.Function):
         for layer in range(len(weights) // 4):
             w_ih, w_hh, b_ih, b_hh = weights[4 * layer:4 * layer + 4]
             hidden = w_hh.shape[1]
-            bias = torch.cat((b_ih[:2 * hidden] + b_hh[:2 * hidden], b_ih[2 * hidden:]))
-            gi = torch.baddbmm(bias[:, None], w_ih.expand(steps, -1, -1), layer_input)    # (T, 3H, N)
+            # the n rows of the input projection times 2: tanh(u) = 2 sigmoid(2u) - 1 (a much faster CPU kernel)
+            bias = torch.cat((b_ih[:2 * hidden] + b_hh[:2 * hidden], 2 * b_ih[2 * hidden:]))
+            w_in = torch.cat((w_ih[:2 * hidden], 2 * w_ih[2 * hidden:]))
+            gi = torch.baddbmm(bias[:, None], w_in.expand(steps, -1, -1), layer_input)     # (T, 3H, N)
             w_rz, w_n, b_n = w_hh[:2 * hidden], w_hh[2 * hidden:], b_hh[2 * hidden:, None]
             outputs = layer_input.new_empty(steps, hidden, size)
             rz_all = layer_input.new_empty(steps, 2 * hidden, size) if keep else None
@@ -58,8 +61,8 @@ class _GRU(torch.autograd.Function):
                 rz = torch.addmm(gi[step, :2 * hidden], w_rz, h, out=rz_all[step] if keep else None)
                 torch.sigmoid_(rz)
                 gh_n = torch.addmm(b_n, w_n, h, out=gh_n_all[step] if keep else None)
-                n = torch.addcmul(gi[step, 2 * hidden:], rz[:hidden], gh_n, out=n_all[step] if keep else None)
-                torch.tanh_(n)
+                n = torch.addcmul(gi[step, 2 * hidden:], rz[:hidden], gh_n, value=2, out=n_all[step] if keep else None)
+                torch.sigmoid_(n).mul_(2).sub_(1)
                 h = torch.lerp(n, h, rz[hidden:], out=outputs[step])
             if keep:
                 saved += [layer_input, outputs, rz_all, n_all, gh_n_all]

@@ -274,9 +274,25 @@ class FlowModel(TrajectoryModel):
         raise ValueError(f"unknown stage {stage!r} for {self.name}")
 
     def flow_nll(self, batch: SceneBatch) -> Tensor:
-        """Mean negative log-likelihood of the batch's targets under the conditional flow."""
+        """Mean negative log-likelihood of the batch's targets under the conditional flow (while training, of the
+        scaled scenes when the model has a scaling augmentation)."""
         self._require_future(batch)
-        return -self.log_likelihood(batch).mean()
+        return -self.log_likelihood(self.augmented(batch)).mean()
+
+    def scale_augmentation(self) -> tuple[float, float, float]:
+        """(std, min, max) of the training-time scale factors s ~ N(1, std) truncated to [min, max]; std 0 = none."""
+        cfg = self.config
+        return cfg.scale_augment_std, cfg.scale_augment_min, cfg.scale_augment_max
+
+    def augmented(self, batch: SceneBatch) -> SceneBatch:
+        """While training, `batch` with each problem's scene scaled about the target's position at t0 by a factor
+        drawn from torch's global generator (:meth:`scale_augmentation`); otherwise, or without one, `batch`.
+        Targets computed once for the unscaled futures (``batch.targets``) are dropped: they do not fit."""
+        std, low, high = self.scale_augmentation()
+        if not self.training or std == 0:
+            return batch
+        return replace(scale_scene(batch, truncated_normal_scales(len(batch), std, low, high, batch.past)),
+                       targets=None)
 
     def log_likelihood(self, batch: SceneBatch) -> Tensor:
         self._require_future(batch)
@@ -331,7 +347,8 @@ class TrajFlow(FlowModel):
     def stage_loss(self, stage: str, batch: SceneBatch) -> Tensor:
         if stage == "autoencoder":
             self._require_future(batch)
-            return self.autoencoder.reconstruction_loss(self.normalize(batch).future, self.config.alpha)
+            return self.autoencoder.reconstruction_loss(self.normalize(self.augmented(batch)).future,
+                                                        self.config.alpha)
         return super().stage_loss(stage, batch)
 
     def targets(self, norm: Normalized) -> Tensor:
@@ -378,17 +395,17 @@ class FloMo(TrajFlowNoAE):
     """FloMo (Schoeller & Knoll 2021): TrajFlow w/o AE plus FloMo's training-time regularisation.
 
     While training (``self.training``), each problem's scene is scaled about the target's position at t0 by
-    s ~ N(1, flomo_scale_std) truncated to [flomo_scale_min, flomo_scale_max] (FloMo's scaling augmentation),
-    and noise is added to the flow's input: std beta on scaled displacements with |y| < flomo_zero_threshold
-    (avoiding infinite-density points for standing agents), std gamma on all others. Evaluation is noise-free.
+    s ~ N(1, flomo_scale_std) truncated to [flomo_scale_min, flomo_scale_max] (FloMo's scaling augmentation, the
+    mechanism of :meth:`FlowModel.augmented`), and noise is added to the flow's input: std beta on scaled
+    displacements with |y| < flomo_zero_threshold (avoiding infinite-density points for standing agents), std
+    gamma on all others. Evaluation is noise-free.
     """
 
     name = "flomo"
 
-    def flow_nll(self, batch: SceneBatch) -> Tensor:
-        if self.training:
-            batch = scale_scene(batch, self._scale_factors(len(batch), batch.past))
-        return super().flow_nll(batch)
+    def scale_augmentation(self) -> tuple[float, float, float]:
+        cfg = self.config
+        return cfg.flomo_scale_std, cfg.flomo_scale_min, cfg.flomo_scale_max
 
     def targets(self, norm: Normalized) -> Tensor:
         y = super().targets(norm)
@@ -399,17 +416,15 @@ class FloMo(TrajFlowNoAE):
         std = torch.where(small, torch.full_like(y, cfg.flomo_beta), torch.full_like(y, cfg.flomo_gamma))
         return y + std * torch.randn_like(y)
 
-    def _scale_factors(self, n: int, like: Tensor) -> Tensor:
-        """Truncated-normal scale factors by inverse-CDF sampling (B,)."""
-        cfg = self.config
-        if cfg.flomo_scale_std == 0:
-            return like.new_ones(n)
-        normal = torch.distributions.Normal(0.0, 1.0)
-        lo = normal.cdf(torch.tensor((cfg.flomo_scale_min - 1) / cfg.flomo_scale_std))
-        hi = normal.cdf(torch.tensor((cfg.flomo_scale_max - 1) / cfg.flomo_scale_std))
-        u = lo + (hi - lo) * torch.rand(n, device=like.device, dtype=like.dtype)
-        s = 1 + cfg.flomo_scale_std * torch.special.ndtri(u)
-        return s.clamp(cfg.flomo_scale_min, cfg.flomo_scale_max)
+
+def truncated_normal_scales(n: int, std: float, low: float, high: float, like: Tensor) -> Tensor:
+    """`n` scale factors s ~ N(1, std) truncated to [low, high], by inverse-CDF sampling from torch's global
+    generator (one uniform draw per factor), in `like`'s dtype and device."""
+    normal = torch.distributions.Normal(0.0, 1.0)
+    lo = normal.cdf(torch.tensor((low - 1) / std))
+    hi = normal.cdf(torch.tensor((high - 1) / std))
+    u = lo + (hi - lo) * torch.rand(n, device=like.device, dtype=like.dtype)
+    return (1 + std * torch.special.ndtri(u)).clamp(low, high)
 
 
 def scale_scene(batch: SceneBatch, scale: Tensor) -> SceneBatch:
