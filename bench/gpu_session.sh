@@ -5,7 +5,12 @@
 # of the `device` tool (10 minutes) with time to rerun it.
 #
 #   bash bench/gpu_session.sh prepare    # here, once: wheels the GPU image lacks into .whl/, data/eth_ucy ingested
+#   rm -rf docs/results                  # here: the published models (about 100 MB) would put the tree over the
+#                                        # 64 MiB a call carries; `git checkout -- docs/results` brings them back
 #   bash bench/gpu_session.sh run        # there: device run, carry [".whl", "data/eth_ucy"], timeout_s 560
+#
+# The first GPU session (2026-12-04, bench/README "ninth round") ran it in 136 s of command time (plus about 30 s to
+# start the machine); the step profile added since takes about a minute more.
 #
 # The GPU image has torch, numpy 2, scipy, scikit-learn, pyarrow, typer, rich, matplotlib and safetensors, but not
 # polars or zuko; nothing can be downloaded there, so those travel as wheels (about 55 MB of the 64 MiB a
@@ -48,6 +53,9 @@ run() {
     if [ "$device" = cuda ]; then
         echo "== training / sampling throughput on CUDA"
         timeout 150 python3 bench/train.py --no-cpu --repeats 3 --models trajflow flomo 2>&1 | tee "$OUT/bench_train.txt"
+        echo "== where a flow step's time goes on CUDA; the GRUs' two paths side by side"
+        timeout 150 python3 bench/step_profile.py --gru-rounds 3 --batches 128 2048 --no-compile 2>&1 \
+            | grep -v USDT | tee "$OUT/step_profile.txt"
     fi
 
     echo "== ETH/UCY fold eth, TrajFlow, paper settings, $epochs autoencoder + $epochs flow epochs on $device"

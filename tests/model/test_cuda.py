@@ -6,6 +6,7 @@ is lent a GPU, through `bench/gpu_session.sh`.
 
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import torch
 
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.model import load_model
+from trajflow_pipeline.model.gru import gru_outputs
 from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
 from trajflow_pipeline.training import train
 
@@ -46,3 +48,24 @@ def test_cuda_and_cpu_agree_on_the_same_weights(synthetic_dataset: Path, tmp_pat
         gpu = on_gpu.log_likelihood(batch.to(torch.device("cuda"))).cpu()
     assert torch.isfinite(cpu).all()
     torch.testing.assert_close(gpu, cpu, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("mode", ["train", "eval"])
+def test_gru_outputs_on_cuda_are_the_cpu_values_and_gradients(mode: str) -> None:
+    """On a GPU, gru_outputs runs cuDNN's GRU in training mode and the written-out recursion in eval mode (where
+    cuDNN has no backward pass): both give the CPU's values and gradients."""
+    torch.manual_seed(0)
+    gru = torch.nn.GRU(5, 16, 3, batch_first=True).double()
+    inputs = torch.randn(40, 7, 5, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(40, 7, 16, dtype=torch.float64)
+    expected = gru(inputs)[0]
+    (expected * weights).sum().backward()
+    expected_grads = [inputs.grad, *(p.grad for p in gru.parameters())]
+    on_gpu = copy.deepcopy(gru).cuda().train(mode == "train")
+    on_gpu.zero_grad()
+    gpu_inputs = inputs.detach().cuda().requires_grad_()
+    outputs = gru_outputs(on_gpu, gpu_inputs)
+    (outputs * weights.cuda()).sum().backward()
+    torch.testing.assert_close(outputs.cpu(), expected, rtol=1e-9, atol=1e-9)
+    for grad, want in zip([gpu_inputs.grad, *(p.grad for p in on_gpu.parameters())], expected_grads):
+        torch.testing.assert_close(grad.cpu(), want, rtol=1e-8, atol=1e-8)

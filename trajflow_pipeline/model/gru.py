@@ -21,13 +21,18 @@ def gru_outputs(gru: nn.GRU, inputs: Tensor) -> Tensor:
     """Top-layer outputs (N, T, H) of `gru` over `inputs` (N, T, I) from a zero hidden state, as ``gru(inputs)[0]``.
 
     `gru` must be unidirectional, batch first, with biases and no dropout (how the encoders build theirs). The
-    result is a view of feature-major storage (not contiguous).
+    result may be a view of feature-major storage (not contiguous). On a GPU nn.GRU itself runs (cuDNN): there a
+    training step is bound by kernel launches, of which the written-out recursion makes several per step and
+    layer (measured side by side on an H200, batch 128: autoencoder step 1.71x, flow step 1.15x). In eval mode
+    with gradients the recursion stays, as cuDNN has no backward pass there.
     """
     if gru.bidirectional or not gru.batch_first or not gru.bias or (gru.dropout and gru.training):
         raise ValueError("gru_outputs takes a unidirectional, batch-first GRU with biases and no dropout")
     weights = [getattr(gru, f"{kind}_l{layer}") for layer in range(gru.num_layers)
                for kind in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")]
     keep = torch.is_grad_enabled() and (inputs.requires_grad or any(w.requires_grad for w in weights))
+    if inputs.is_cuda and (gru.training or not keep):
+        return gru(inputs)[0]   # cuDNN's fused GRU: a few kernels where the recursion below launches hundreds
     return _GRU.apply(keep, inputs, *weights)
 
 
