@@ -24,15 +24,13 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from trajflow_pipeline.model import ModelConfig, build_model, tune_cpu_allocator
-from trajflow_pipeline.model.toy import crowd_batch
-from release_compat import adamw, finite_gradients, with_fixed_targets
-from train import SPEC, best_time
+from train import SPEC, best_time, freeze_all_but, training_step
 
 
-def flow_step(batch_size: int, device: torch.device, compiled: bool, stage: str = "flow",
+def trajflow_step(batch_size: int, device: torch.device, compiled: bool, stage: str = "flow",
               recursion_gru: bool = False) -> tuple[Callable[[], None], float]:
     """A TrajFlow training step of `stage` on a fixed batch of `batch_size` problems with up to 8 neighbours
-    (loss, backward, finiteness check, fused AdamW) and the seconds its compilation took (0 when eager).
+    (bench/train.py's step) and the seconds its compilation took (0 when eager).
 
     `recursion_gru`: the GRUs that run through gru_outputs in eval mode (the same function: they have no
     dropout), where it runs its written-out recursion on a GPU too instead of cuDNN's GRU."""
@@ -42,28 +40,15 @@ def flow_step(batch_size: int, device: torch.device, compiled: bool, stage: str 
         for name, module in model.named_modules():
             if isinstance(module, torch.nn.GRU) and not name.endswith("dec_gru"):
                 module.eval()
-    params = model.stage_parameters(stage)
-    keep = {id(p) for p in params}
-    for p in model.parameters():
-        p.requires_grad_(id(p) in keep)
+    freeze_all_but(model, stage)
     compile_seconds = 0.0
     if compiled:
         start = time.perf_counter()
-        failure = model.compile_stage("flow", batch_size)
+        failure = model.compile_stage(stage, batch_size)
         if failure is not None:
-            raise SystemExit(f"the flow stage did not compile: {failure}")
+            raise SystemExit(f"the {stage} stage did not compile: {failure}")
         compile_seconds = time.perf_counter() - start
-    optimizer = adamw(params, 1e-4, 1e-5)
-    batch = with_fixed_targets(model, stage, crowd_batch(batch_size, neighbours=8, seed=1).to(device))
-
-    def step() -> None:
-        loss = model.stage_loss(stage, batch)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if finite_gradients(params, 0.0):
-            optimizer.step()
-
-    return step, compile_seconds
+    return training_step(model, stage, batch_size, 8, device), compile_seconds
 
 
 def print_profile(step: Callable[[], None], device: torch.device, sync: Callable[[], None], steps: int = 5) -> None:
@@ -109,20 +94,20 @@ def main() -> None:
         rates: dict[bool, list[float]] = {False: [], True: []}
         for _ in range(args.gru_rounds):
             for recursion in (False, True):
-                step, _ = flow_step(128, device, compiled=False, stage=stage, recursion_gru=recursion)
+                step, _ = trajflow_step(128, device, compiled=False, stage=stage, recursion_gru=recursion)
                 rates[recursion].append(128 / best_time(step, args.repeats, 10, sync)[0])
         native, recursion = max(rates[False]), max(rates[True])
         print(f"{stage}, batch 128, best of {args.gru_rounds} alternating rounds: GRU as nn.GRU {native:,.0f} "
               f"samples/s, as the written-out recursion {recursion:,.0f} ({native / recursion:.2f}x)")
     for batch_size in args.batches:
-        step, _ = flow_step(batch_size, device, compiled=False)
+        step, _ = trajflow_step(batch_size, device, compiled=False)
         wall, cpu = best_time(step, args.repeats, 10, sync)
         print(f"eager, batch {batch_size:>5d}: {batch_size / wall:>10,.0f} samples/s  ({wall * 1e3:.1f} ms a step, "
               f"{cpu / wall:.0%} of it host CPU time)")
     print("\n== profile of the eager batch-128 step")
-    print_profile(flow_step(128, device, compiled=False)[0], device, sync)
+    print_profile(trajflow_step(128, device, compiled=False)[0], device, sync)
     if not args.no_compile:
-        step, seconds = flow_step(128, device, compiled=True)
+        step, seconds = trajflow_step(128, device, compiled=True)
         wall, _ = best_time(step, args.repeats, 10, sync)
         print(f"\n== compiled (train.compile_flow = \"on\"), batch 128: compiled in {seconds:.0f} s; "
               f"{128 / wall:,.0f} samples/s ({wall * 1e3:.1f} ms a step)")

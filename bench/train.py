@@ -57,19 +57,22 @@ def best_time(fn: Callable[[], object], repeats: int, inner: int, sync: Callable
 COMPILE_FLOW = False
 
 
-def training_rate(name: str, stage: str, neighbours: int, device: torch.device, repeats: int,
-                  sync: Callable[[], None]) -> tuple[float, float]:
-    """Samples per second of the training step of `stage` at batch 128 (by wall time, by CPU time)."""
-    torch.manual_seed(0)
-    model = build_model(ModelConfig(name=name), SPEC).to(device).train()
+def freeze_all_but(model: torch.nn.Module, stage: str) -> list[torch.nn.Parameter]:
+    """The parameters `stage` trains, the only ones left requiring gradients (as the training loop does)."""
     params = model.stage_parameters(stage)
     keep = {id(p) for p in params}
     for p in model.parameters():
         p.requires_grad_(id(p) in keep)
-    if COMPILE_FLOW and stage == "flow":
-        compile_flow_stage(model, 128, f"{name} {stage} {neighbours} neighbours")
+    return params
+
+
+def training_step(model: torch.nn.Module, stage: str, batch_size: int, neighbours: int,
+                  device: torch.device) -> Callable[[], None]:
+    """One training step of `stage` on a fixed batch of `batch_size` problems with up to `neighbours` neighbours:
+    loss, backward, finiteness check, fused AdamW. Call after :func:`freeze_all_but` and any compilation."""
+    params = [p for p in model.parameters() if p.requires_grad]
     optimizer = adamw(params, 1e-4, 1e-5)
-    batch = with_fixed_targets(model, stage, crowd_batch(128, neighbours=neighbours, seed=1).to(device))
+    batch = with_fixed_targets(model, stage, crowd_batch(batch_size, neighbours=neighbours, seed=1).to(device))
 
     def step() -> None:
         loss = model.stage_loss(stage, batch)
@@ -78,7 +81,18 @@ def training_rate(name: str, stage: str, neighbours: int, device: torch.device, 
         if finite_gradients(params, 0.0):
             optimizer.step()
 
-    wall, cpu = best_time(step, repeats, 10, sync)
+    return step
+
+
+def training_rate(name: str, stage: str, neighbours: int, device: torch.device, repeats: int,
+                  sync: Callable[[], None]) -> tuple[float, float]:
+    """Samples per second of the training step of `stage` at batch 128 (by wall time, by CPU time)."""
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name=name), SPEC).to(device).train()
+    freeze_all_but(model, stage)
+    if COMPILE_FLOW and stage == "flow":
+        compile_flow_stage(model, 128, f"{name} {stage} {neighbours} neighbours")
+    wall, cpu = best_time(training_step(model, stage, 128, neighbours, device), repeats, 10, sync)
     return 128 / wall, 128 / cpu
 
 
