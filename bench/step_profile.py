@@ -28,7 +28,7 @@ from train import SPEC, best_time, freeze_all_but, training_step
 
 
 def trajflow_step(batch_size: int, device: torch.device, compiled: bool, stage: str = "flow",
-              recursion_gru: bool = False) -> tuple[Callable[[], None], float]:
+                  recursion_gru: bool = False) -> tuple[Callable[[], None], float]:
     """A TrajFlow training step of `stage` on a fixed batch of `batch_size` problems with up to 8 neighbours
     (bench/train.py's step) and the seconds its compilation took (0 when eager).
 
