@@ -43,6 +43,10 @@ def main(dataset: str) -> None:
           np.round(closest[worst], 2))
     print(f"  spread of the draws' final positions, m (median agent {np.median(spread):.2f}):",
           np.round(spread[worst], 2))
+    step = (batch.neighbours[:, :, -1] - batch.neighbours[:, :, -2]).norm(dim=-1)
+    seen = batch.neighbours_mask & batch.neighbours_valid[:, :, -1] & batch.neighbours_valid[:, :, -2]
+    speed = ((step * seen).sum(1) / seen.sum(1).clamp(min=1)).numpy()
+    print("  their neighbours' mean last past step, m (0: none seen):", np.round(speed[worst], 2))
     change = np.abs(log_lik - log_lik_alone)
     print(f"  flow log-density change without the neighbours, nats (median agent {np.median(change):.2f}):",
           np.round(change[worst], 2))
