@@ -21,7 +21,7 @@ from trajflow_pipeline.errors import DataError, TrajflowError, UsageError
 from trajflow_pipeline.model import compiled as compiled_module
 from trajflow_pipeline.model import load_model, load_training_state, save_training_state
 from trajflow_pipeline.model.config import load_config
-from trajflow_pipeline.model.normalize import target_frame, to_local
+from trajflow_pipeline.model.normalize import scene_speed, target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch
 from train_fakes import FakeProblems
 from trajflow_pipeline import rundir
@@ -399,6 +399,26 @@ def test_flow_standardize_is_fitted_logged_saved_and_resumed(monkeypatch: pytest
     parts = train_killed_and_resumed(monkeypatch, tmp_path / "parts", ("flow", 1), **options)
     a, b = final_weights(whole), final_weights(parts)
     assert a.keys() == b.keys() and {"flow.shift", "flow.scale"} <= a.keys()
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+
+
+def test_speed_normalize_fits_its_reference_once_saves_it_and_resumes(monkeypatch: pytest.MonkeyPatch,
+                                                                     tmp_path: Path) -> None:
+    """model.speed_normalize: the reference pace is the training split's median scene speed, fitted before the
+    first stage, saved with the final weights, and a resumed run is the uninterrupted one."""
+    install_fake_data(monkeypatch, 80, 24)
+    options = dict(model="trajflow", quiet=True, overrides=[
+        *FAST, *TINY_MODEL, "model.speed_normalize=true", "train.ae_max_epochs=2", "train.flow_max_epochs=2",
+        "train.ae_batch_size=32", "train.flow_batch_size=32"])
+    whole = train(tmp_path / "data", tmp_path / "whole", **options)
+    train_batch = data_module.load_problems(tmp_path / "data").batch
+    speeds = scene_speed(train_batch.past, train_batch.neighbours, train_batch.neighbours_valid,
+                         train_batch.neighbours_mask)
+    assert float(load_model(whole / "final").speed_reference) == pytest.approx(float(speeds.median()))
+    parts = train_killed_and_resumed(monkeypatch, tmp_path / "parts", ("autoencoder", 1), **options)
+    a, b = final_weights(whole), final_weights(parts)
+    assert a.keys() == b.keys() and "speed_reference" in a
     for name in a:
         assert torch.equal(a[name], b[name]), name
 

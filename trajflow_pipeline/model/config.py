@@ -84,6 +84,16 @@ class ModelConfig:
     scale_augment_std: float = bounded(0.0, ge=0)
     scale_augment_min: float = bounded(0.3, gt=0, le=1)
     scale_augment_max: float = bounded(1.7, ge=1)
+    #: Not in the paper: each problem's scene is scaled, in its target frame, by speed_reference / s, where s is
+    #: the mean step length of every agent's observed past at t0 (target and neighbours; normalize.scene_speed)
+    #: and speed_reference the median s of the training problems (fitted before the first stage and kept with
+    #: the weights); the factor is clipped to [speed_normalize_min, speed_normalize_max] and the draws are scaled
+    #: back. So a location whose agents walk faster than the training locations' (ETH/UCY fold eth: a median s
+    #: of 0.84 m against 0.25 m in training) is seen at the training locations' pace. Every model; not with map
+    #: crops (they are not scaled) nor with a scaling augmentation (it would be undone).
+    speed_normalize: bool = False
+    speed_normalize_min: float = bounded(0.33, gt=0, le=1)
+    speed_normalize_max: float = bounded(3.0, ge=1)
     # FloMo training-time noise injection and scaling augmentation (model "flomo" only).
     flomo_beta: float = bounded(0.2, ge=0)
     flomo_gamma: float = bounded(0.02, ge=0)
@@ -105,6 +115,10 @@ class ModelConfig:
                              f"{self.gnn_aggregate!r}")
         if not self.flow_hidden:
             raise UsageError("model.flow_hidden must be a non-empty list of positive widths")
+        if self.speed_normalize and (self.scale_augment_std > 0 or (self.name == "flomo" and self.flomo_scale_std > 0)):
+            key = "model.flomo_scale_std" if self.name == "flomo" else "model.scale_augment_std"
+            raise UsageError(f"model.speed_normalize scales every scene to the training pace, which undoes a scaling "
+                             f"augmentation: set {key}=0 with it")
 
 
 def check_fields(section: Any, name: str) -> None:

@@ -39,12 +39,14 @@ from typing import ClassVar, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from ..errors import UsageError
 from .autoencoder import TrajectoryAutoencoder
 from .batch import SceneBatch
 from .config import DataSpec, ModelConfig
 from .encoders import ContextEncoder, MapEncoder, PastEncoder, SocialGNN
 from .flow import ConditionalSplineFlow
-from .normalize import Frame, denormalize_future, normalize_future, target_frame, to_local, to_world
+from .normalize import (MIN_STEP, Frame, denormalize_future, normalize_future, scene_speed, target_frame,
+                        to_local, to_world)
 
 
 #: How a model predicts past its trained horizon (``TrajectoryModel.beyond_horizon``).
@@ -88,6 +90,12 @@ class TrajectoryModel(nn.Module, abc.ABC):
         # One draw of torch's global generator; each component's initial weights come from its own stream
         # seeded by it and the component's name (component_stream).
         self.init_seed = int(torch.randint(0, 2 ** 62, (1,)))
+        if config.speed_normalize:
+            if config.use_map and spec.has_map:
+                raise UsageError("model.speed_normalize does not scale map crops: set model.use_map=false with it, "
+                                 "or leave it off for a dataset with maps")
+            # model.speed_normalize's reference pace (metres a step): NaN until fit_data_constants
+            self.register_buffer("speed_reference", torch.tensor(float("nan")))
 
     @classmethod
     def stages_for(cls, config: ModelConfig) -> tuple[str, ...]:
@@ -95,10 +103,30 @@ class TrajectoryModel(nn.Module, abc.ABC):
         return cls.stages
 
     def normalize(self, batch: SceneBatch) -> Normalized:
-        """Target frames, local past and (if present) scaled future displacements of `batch`."""
+        """Target frames, local past and (if present) scaled future displacements of `batch`; with
+        model.speed_normalize the frames scale each scene to the training pace (:meth:`speed_scales`)."""
         frame = target_frame(batch.past)
+        if self.config.speed_normalize:
+            frame = replace(frame, scale=self.speed_scales(batch))
         future = None if batch.future is None else normalize_future(batch.future, frame, self.config.alpha)
         return Normalized(frame, to_local(batch.past, frame), future)
+
+    def fit_data_constants(self, batch: SceneBatch) -> None:
+        """Fit, on the training split and before the first stage, what the model derives from its data rather
+        than learns: model.speed_normalize's reference pace, the median scene speed of the training problems.
+        Kept with the weights (a buffer), so a resumed run or a loaded model keeps it; fitted only once."""
+        if self.config.speed_normalize and torch.isnan(self.speed_reference):
+            speed = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
+            self.speed_reference.fill_(speed.median())
+
+    def speed_scales(self, batch: SceneBatch) -> Tensor:
+        """Per problem (B,), the factor model.speed_normalize scales its scene by: the reference pace over the
+        scene's own (:func:`~.normalize.scene_speed`), clipped to [speed_normalize_min, speed_normalize_max]."""
+        if torch.isnan(self.speed_reference):
+            raise RuntimeError("model.speed_normalize: fit_data_constants(training batch) comes before any use")
+        speed = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
+        ratio = self.speed_reference.to(speed.dtype) / speed.clamp(min=MIN_STEP)
+        return ratio.clamp(self.config.speed_normalize_min, self.config.speed_normalize_max)
 
     @abc.abstractmethod
     def stage_parameters(self, stage: str) -> list[nn.Parameter]:

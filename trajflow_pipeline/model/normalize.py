@@ -22,16 +22,19 @@ MIN_STEP = 1e-4
 
 @dataclass(frozen=True)
 class Frame:
-    """Per-problem target frame: origin (B, 2) in world coordinates and heading (cos, sin), each (B,)."""
+    """Per-problem target frame: origin (B, 2) in world coordinates, heading (cos, sin), each (B,), and optionally
+    a scale (B,) that local coordinates are multiplied by (model.speed_normalize; None: 1)."""
 
     origin: Tensor
     cos: Tensor
     sin: Tensor
+    scale: Tensor | None = None
 
     def expand(self, n: int) -> "Frame":
         """The same frames repeated `n` times per problem (problem-major), for (B * n) samples."""
         return Frame(self.origin.repeat_interleave(n, 0), self.cos.repeat_interleave(n, 0),
-                     self.sin.repeat_interleave(n, 0))
+                     self.sin.repeat_interleave(n, 0),
+                     None if self.scale is None else self.scale.repeat_interleave(n, 0))
 
 
 def heading(past: Tensor, min_step: float = MIN_STEP) -> tuple[Tensor, Tensor]:
@@ -76,7 +79,8 @@ def to_local(points: Tensor, frame: Frame) -> Tensor:
     cos = _per_problem(frame.cos, points[..., 0])
     sin = _per_problem(frame.sin, points[..., 0])
     d = points - origin
-    return torch.stack((cos * d[..., 0] + sin * d[..., 1], -sin * d[..., 0] + cos * d[..., 1]), dim=-1)
+    local = torch.stack((cos * d[..., 0] + sin * d[..., 1], -sin * d[..., 0] + cos * d[..., 1]), dim=-1)
+    return local if frame.scale is None else local * _per_problem(frame.scale, points[..., 0])[..., None]
 
 
 def to_world(points: Tensor, frame: Frame) -> Tensor:
@@ -84,8 +88,28 @@ def to_world(points: Tensor, frame: Frame) -> Tensor:
     origin = _per_problem(frame.origin, points)
     cos = _per_problem(frame.cos, points[..., 0])
     sin = _per_problem(frame.sin, points[..., 0])
+    if frame.scale is not None:
+        points = points / _per_problem(frame.scale, points[..., 0])[..., None]
     x, y = points[..., 0], points[..., 1]
     return torch.stack((cos * x - sin * y, sin * x + cos * y), dim=-1) + origin
+
+
+def scene_speed(past: Tensor, neighbours: Tensor, neighbours_valid: Tensor, neighbours_mask: Tensor) -> Tensor:
+    """Mean step length (B,) over every observed past step of every agent of each problem: the target's past
+    (B, P, 2) and its neighbours' (B, N, P, 2), a step counting where both of its end points are observed (and
+    finite); 0 for a problem without any step. What model.speed_normalize scales scenes by: only what is observed
+    at t0, so training and prediction compute it alike."""
+    target_steps = past.diff(dim=1)
+    target_length = torch.linalg.vector_norm(target_steps, dim=-1)                      # (B, P-1)
+    target_seen = torch.isfinite(target_length)
+    seen = neighbours_valid & neighbours_mask[..., None]                                # (B, N, P)
+    both = seen[..., 1:] & seen[..., :-1]
+    length = torch.linalg.vector_norm(neighbours.diff(dim=2), dim=-1)                   # (B, N, P-1)
+    both = both & torch.isfinite(length)
+    total = (torch.where(target_seen, target_length, 0).sum(1)
+             + torch.where(both, length, 0).sum((1, 2)))
+    count = target_seen.sum(1) + both.sum((1, 2))
+    return total / count.clamp(min=1)
 
 
 def positions_to_displacements(positions: Tensor, alpha: float) -> Tensor:

@@ -79,6 +79,7 @@ class Session(RunRecords):
         stage_index, progress = begin
         train_batch = on_device(self.data.train, self.device)
         val_batch = on_device(self.data.val, self.device)
+        self.model.fit_data_constants(train_batch)  # a fresh run's; a resumed one restored its own
         stages = self.model.stages
         with make_progress(self.quiet or not self.writer, TextColumn("{task.fields[status]}", markup=False)) as bars:
             for index in range(stage_index, len(stages)):
