@@ -90,7 +90,8 @@ OURS = sorted((CONFIGS.parent / "ours").glob("*.toml"))
 def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Path) -> None:
     """configs/ours: a paper protocol (same data, folds, seeds and evaluation; its models, or those of them our
     change concerns, TrajFlow among them) with changes of ours to the flow model (the flow settings, which flow
-    weights training keeps, how the GNN that conditions it aggregates, the scaling augmentation it trains with)."""
+    weights training keeps, how the GNN that conditions it aggregates, the scaling augmentation it trains with,
+    the pace its scenes are normalised to)."""
     ours = load_experiment(path)
     protocol = max((p for p in CONFIGS.glob("*.toml") if path.stem.startswith(p.stem + "_")), key=lambda p: len(p.stem))
     paper = load_experiment(protocol)
@@ -98,7 +99,8 @@ def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Pat
         assert getattr(ours, key) == getattr(paper, key), key
     assert "trajflow" in ours.models and set(ours.models) <= set(paper.models)
     assert ours.train_overrides and all(o.startswith(("model.flow_", "train.flow_select", "model.gnn_aggregate",
-                                                      "model.scale_augment_")) for o in ours.train_overrides)
+                                                      "model.scale_augment_", "model.speed_normalize"))
+                                          for o in ours.train_overrides)
     load_config(overrides=list(ours.train_overrides))      # every override is a real, valid key
 
 
