@@ -3,7 +3,8 @@
 For each problem the *target frame* has its origin at the target's last observed position and its x axis along
 the target's last past step, so that the target always "drives along +x" at t0. Futures are represented as
 per-step displacements in that frame, multiplied by ``alpha`` (10 by default) so that pedestrian steps of a few
-centimetres reach a range where the spline flow (tail bound 15) has resolution.
+centimetres reach a range where the spline flow (tail bound 15) has resolution. With model.speed_normalize the
+frame also scales each scene to the training split's pace (Frame.scale, from :func:`scene_speed`).
 
 All functions are batched over the leading dimension and work in any floating dtype (use float64 when an exact
 round trip matters, e.g. for tests to 1e-6).
