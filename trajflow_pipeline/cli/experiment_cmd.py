@@ -22,7 +22,8 @@ def experiment_command(
     only: Annotated[Optional[list[str]], typer.Option(
         "--only", metavar="PATTERN", help=(
             "Work only on the runs whose names (MODEL-FOLD-sSEED) match; shell patterns, repeatable, e.g. "
-            "--only flomo-zara2-s0 or --only 'trajflow-*'. To have one run done now beside a process that works "
+            "--only flomo-zara2-s0 or --only '*-eth-*' ('trajflow-*' also matches trajflow-no-ae's runs). To have "
+            "one run done now beside a process that works "
             "through the plan, or to split an experiment between machines."))] = None,
     ray: Annotated[Optional[str], typer.Option(
         "--ray", metavar="ADDRESS", help=(

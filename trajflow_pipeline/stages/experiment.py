@@ -26,8 +26,9 @@ torch's threads: small models gain more from parallel runs than from threads. A 
 that has GPUs, one GPU; EXP must be on a file system every node shares. A Ray task whose worker died (killed, node
 lost) is run again and resumes the run from its last checkpoint; a run that fails with a data or usage error is
 not retried: it is reported, with its one-line error, when the other runs are done. ``--only PATTERN`` limits a
-process to the runs whose names match (shell patterns: ``flomo-zara2-s0``, ``'trajflow-*'``): to have one run
-trained now, beside a process that works through the plan, or to split an experiment between machines. The index
+process to the runs whose names match (shell patterns: ``flomo-zara2-s0``, ``'*-eth-*'``; ``trajflow-*`` also
+matches trajflow-no-ae's runs): to have one run trained now, beside a process that works through the plan, or to
+split an experiment between machines. The index
 still covers every finished run of the plan.
 """
 
