@@ -14,7 +14,6 @@ each problem's density on its own draws (no pooling of identical inputs), ROME's
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from trajflow_pipeline import data as data_module
 from trajflow_pipeline.metrics.compute import compute_metrics
 from trajflow_pipeline.model import load_model
 from trajflow_pipeline.model.batch import SceneBatch
+from trajflow_pipeline.model.models import scale_scene
 from trajflow_pipeline.model.normalize import scene_speed
 
 MODELS = Path(__file__).resolve().parents[1] / "eth_ucy_gnn_mean_folds" / "models"
@@ -34,16 +34,14 @@ def speeds(batch: SceneBatch) -> torch.Tensor:
     return scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
 
 
-def scaled(batch: SceneBatch, factor: torch.Tensor) -> SceneBatch:
-    """Every position of problem i times factor[i] (about the origin: the target frame removes the shift)."""
-    return replace(batch, past=batch.past * factor[:, None, None], future=None,
-                   neighbours=batch.neighbours * factor[:, None, None, None])
-
-
 def evaluate(model: torch.nn.Module, batch: SceneBatch, factor: torch.Tensor) -> dict[str, float]:
+    """minADE, minFDE and NLL of `model`'s draws for the scenes scaled about t0 by `factor` (models.scale_scene,
+    what the scaling augmentation uses), the draws scaled back about the same point."""
     with torch.no_grad():
-        draws = model.sample(scaled(batch, factor), 100, generator=torch.Generator().manual_seed(0))[0]
-    draws = draws / factor[:, None, None, None]
+        draws = model.sample(scale_scene(batch, factor).without_future(), 100,
+                             generator=torch.Generator().manual_seed(0))[0]
+    centre = batch.past[:, None, None, -1]
+    draws = centre + (draws - centre) / factor[:, None, None, None]
     table = compute_metrics(draws.double().numpy(), batch.future.double().numpy(),
                             metrics=["min_ade", "min_fde", "nll"], workers=1, quiet=True)
     rows = table.filter(pl.col("aggregate"))
