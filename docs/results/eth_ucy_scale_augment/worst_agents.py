@@ -3,6 +3,8 @@ NLL, how far the draws fall from them, and what their neighbours change (the fig
 
     trajflow ingest eth-ucy ../shared/data/eth_ucy -o /tmp/eth_ucy
     python docs/results/eth_ucy_scale_augment/worst_agents.py /tmp/eth_ucy
+    python docs/results/eth_ucy_scale_augment/worst_agents.py /tmp/eth_ucy \
+        docs/results/eth_ucy_speed_normalize/models/trajflow-eth-s0       # the same for another fold-eth run
 """
 
 from __future__ import annotations
@@ -18,16 +20,17 @@ from scipy.stats import spearmanr
 
 from trajflow_pipeline import data as data_module
 from trajflow_pipeline.model import load_model
+from trajflow_pipeline.model.normalize import scene_speed
 
 RUN = Path(__file__).resolve().parents[1] / "eth_ucy_gnn_mean_folds" / "models" / "trajflow-eth-s0"
 
 
-def main(dataset: str) -> None:
+def main(dataset: str, run: Path = RUN) -> None:
     torch.set_num_threads(1)
-    rome = (pl.read_parquet(RUN / "eval" / "metrics.parquet")
+    rome = (pl.read_parquet(run / "eval" / "metrics.parquet")
             .filter(~pl.col("aggregate") & (pl.col("metric") == "nll")).sort("agent_index")["value"].to_numpy())
     batch = data_module.load_problems(dataset, fold="eth", split="test").batch
-    model = load_model(RUN / "final").eval()
+    model = load_model(run / "final").eval()
     alone = replace(batch, neighbours_mask=torch.zeros_like(batch.neighbours_mask))
     with torch.no_grad():
         log_lik, log_lik_alone = model.log_likelihood(batch).numpy(), model.log_likelihood(alone).numpy()
@@ -47,10 +50,18 @@ def main(dataset: str) -> None:
     seen = batch.neighbours_mask & batch.neighbours_valid[:, :, -1] & batch.neighbours_valid[:, :, -2]
     speed = ((step * seen).sum(1) / seen.sum(1).clamp(min=1)).numpy()
     print("  their neighbours' mean last past step, m (0: none seen):", np.round(speed[worst], 2))
+    own = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
+    print("  their scenes' speed, m a step:", np.round(own.numpy()[worst], 2))
+    target_steps = torch.cat((batch.past[:, -1:], batch.future), 1).diff(dim=1).norm(dim=-1)
+    print("  their last past step and mean future step, m:", np.round(
+        (batch.past[:, -1] - batch.past[:, -2]).norm(dim=-1).numpy()[worst], 2), np.round(
+        target_steps.mean(1).numpy()[worst], 2))
+    if model.config.speed_normalize:
+        print("  model.speed_normalize's factors:", np.round(model.speed_scales(batch).numpy()[worst], 2))
     change = np.abs(log_lik - log_lik_alone)
     print(f"  flow log-density change without the neighbours, nats (median agent {np.median(change):.2f}):",
           np.round(change[worst], 2))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(sys.argv[1], *(Path(arg) for arg in sys.argv[2:3]))
