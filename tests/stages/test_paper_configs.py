@@ -6,13 +6,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import polars as pl
 import pytest
+import torch
+from safetensors.torch import load_file
 
 from trajflow_pipeline.model.config import MODEL_NAMES, load_config
 from trajflow_pipeline.report.paper import PAPER_TRAJFLOW
 from trajflow_pipeline.stages.experiment import run_experiment
 from trajflow_pipeline.stages.experiment_config import INGESTS, load_experiment
 from trajflow_pipeline.stages.report import report
+from trajflow_pipeline.training import train
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "paper"
 PAPER = sorted(p for p in CONFIGS.glob("*.toml") if not p.stem.endswith("_quick"))
@@ -109,6 +113,25 @@ def test_our_configs_change_only_the_flow_settings_of_a_paper_protocol(path: Pat
 
 def test_there_are_configs_of_ours() -> None:
     assert OURS, "configs/ours holds our variants of the paper protocols"
+
+
+def test_the_eth_ucy_deviations_of_ours_change_nothing_on_synthetic_bimodal(synthetic_dataset: Path,
+                                                                           tmp_path: Path) -> None:
+    """configs/ours/eth_ucy.toml's model changes are the identity on the synthetic set, where every problem is one
+    agent (nothing to aggregate) with the same past (every scene at the training pace, factor exactly 1): the same
+    seed trains bit-identical losses and weights with and without them, so the synthetic results of ours hold
+    for a configuration that carries them."""
+    eth_ucy = list(load_experiment(CONFIGS.parent / "ours" / "eth_ucy.toml").train_overrides)
+    assert eth_ucy and all(o.startswith(("model.gnn_aggregate", "model.speed_normalize")) for o in eth_ucy)
+    budget = ["train.ae_min_epochs=0", "train.flow_min_epochs=0", "train.ae_max_epochs=2", "train.flow_max_epochs=2"]
+    runs = [train(synthetic_dataset, tmp_path / name, seed=5, quiet=True, overrides=budget + extra)
+            for name, extra in (("plain", []), ("eth_ucy", eth_ucy))]
+    logs = [pl.read_parquet(run / "train_log.parquet").select("stage", "epoch", "train_loss", "val_loss")
+            for run in runs]
+    assert logs[0].height == 4 and logs[0].equals(logs[1])
+    plain, ours = (load_file(run / "final" / "model.safetensors") for run in runs)
+    assert set(ours) - set(plain) == {"speed_reference"}                   # the fitted pace, kept with the weights
+    assert all(torch.equal(plain[name], ours[name]) for name in plain)
 
 
 BUDGET = sorted((CONFIGS.parent / "cpu").glob("*.toml"))
