@@ -3,6 +3,7 @@ back into an experiment directory on another machine, so that the experiment goe
 work.
 
     python docs/results/publish.py runs/paper/eth_ucy docs/results/eth_ucy
+    python docs/results/publish.py --every 15 runs/paper/eth_ucy docs/results/eth_ucy &
     python docs/results/publish.py --restore docs/results/eth_ucy runs/paper/eth_ucy
 
 Publishing runs `trajflow report EXP -o OUT` (once a run is finished), then writes beside the report:
@@ -22,6 +23,11 @@ Publishing runs `trajflow report EXP -o OUT` (once a run is finished), then writ
   would start again anyway) are left out.
 The `models/` and `unfinished/` folders are rebuilt each time; `models/README.md` is kept as it is.
 
+With `--every MINUTES` it publishes again every MINUTES minutes, beside the experiment that is training, until
+every planned run is finished (then once more, and it exits): what a lost machine loses is then at most that many
+minutes of training, not everything since the last hand-made publish. A round that fails (a run's files changing
+under it) says why in one line and the next round tries again.
+
 Restoring builds EXP (which must not exist or be empty) from a published folder: `EXP/runs/<run>/` from `models/`
 and `unfinished/`, and the config, index and metrics, so that `trajflow experiment CONFIG -o EXP` with the same
 config (or `EXP/config.toml` itself) skips the finished runs (neither trained nor evaluated again), evaluates the
@@ -36,8 +42,10 @@ Resume states are not kept for finished runs, so a restored finished run cannot 
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import json
 import shutil
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -157,6 +165,28 @@ def restore(results: Path, experiment: Path) -> str:
             f"{experiment / CONFIG_FILE} -o {experiment}`")
 
 
+def all_finished(experiment: Path) -> bool:
+    """Whether every planned run of the experiment is finished (its index lists them all as runs)."""
+    index = json.loads(input_files.read_text(experiment / INDEX_FILE))
+    return set(index.get("planned") or ()) <= set(index["runs"])
+
+
+def publish_every(experiment: Path, out: Path, minutes: float, *, sleep=time.sleep) -> None:
+    """Publish `experiment` into `out` now and every `minutes` minutes until all its planned runs are finished (the
+    last round publishes them); a failed round is reported on one line and retried at the next."""
+    while True:
+        finished = all_finished(experiment)
+        try:
+            line = publish(experiment, out)
+        except (ValueError, OSError, TrajflowError) as error:
+            line = f"not published this round ({error}); trying again in {minutes:g} min"
+            finished = False
+        print(f"{dt.datetime.now().isoformat(timespec='seconds')} {line}", flush=True)
+        if finished:
+            return
+        sleep(60 * minutes)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--restore", action="store_true",
@@ -165,8 +195,15 @@ def main() -> None:
                                                   "a published folder, e.g. docs/results/eth_ucy")
     parser.add_argument("target", type=Path, help="results directory, e.g. docs/results/eth_ucy; with --restore, "
                                                   "the experiment directory to create")
+    parser.add_argument("--every", type=float, metavar="MINUTES",
+                        help="publish again every MINUTES minutes until every planned run is finished")
     args = parser.parse_args()
+    if args.every is not None and (args.restore or not args.every > 0):
+        parser.error("--every takes a positive number of minutes, and does not go with --restore")
     try:
+        if args.every is not None:
+            publish_every(args.source, args.target, args.every)
+            return
         print(restore(args.source, args.target) if args.restore else publish(args.source, args.target))
     except (ValueError, OSError, TrajflowError) as error:
         parser.error(str(error))

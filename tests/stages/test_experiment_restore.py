@@ -95,6 +95,37 @@ def test_a_published_experiment_restored_elsewhere_goes_on_without_repeating_wor
     assert (out / "figures").is_dir() and any((out / "figures").glob("*min-ade-vs-k.png"))
 
 
+def test_publishing_every_few_minutes_follows_the_experiment_to_its_end(
+        interrupted: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """--every: a round that fails says why and the next tries again; the round after the last run finished
+    publishes it and ends the loop."""
+    _, exp = interrupted
+    copy = tmp_path / "exp"
+    shutil.copytree(exp, copy)
+    publish = load_publish()
+    real, rounds, sleeps = publish.publish, [], []
+
+    def flaky(experiment: Path, out: Path) -> str:
+        rounds.append(out)
+        if len(rounds) == 1:
+            raise OSError(f"{experiment}: disk full")
+        return real(experiment, out)
+
+    def sleep(seconds: float) -> None:      # the experiment goes on meanwhile, and finishes
+        sleeps.append(seconds)
+        run_experiment(copy / "config.toml", copy, quiet=True)
+
+    monkeypatch.setattr(publish, "publish", flaky)
+    results = tmp_path / "results"
+    publish.publish_every(copy, results, 15, sleep=sleep)
+    assert sleeps == [900] and len(rounds) == 2
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and "not published this round" in lines[0] and "disk full" in lines[0]
+    assert "2 finished runs" in lines[1] and "0 unfinished runs" in lines[1]
+    assert not (results / "unfinished").exists() and is_evaluated(results / "models" / "trajflow-no-ae-all-s0")
+
+
 def test_restore_refuses_a_target_that_holds_anything(interrupted: tuple[Path, Path], tmp_path: Path,
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     config, exp = interrupted
