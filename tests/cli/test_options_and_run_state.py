@@ -247,3 +247,12 @@ def test_the_undamaged_copy_resumes_and_evaluates(data: Path, run: Path) -> None
     code, lines = invoke("eval", str(run), "--quiet", "--samples", "4", "--k", "2", "--workers", "1",
                          "--metric", "min_ade")
     assert code == 0, lines
+
+
+def test_experiment_autoencoder_from_a_missing_directory_is_one_usage_line(tmp_path: Path) -> None:
+    experiment = tmp_path / "exp.toml"
+    experiment.write_text(f"[data]\npath = '{tmp_path / 'data'}'\n[protocol]\nseeds = [0]\n")
+    code, lines = invoke("experiment", str(experiment), "-o", str(tmp_path / "exp"), "--autoencoder-from",
+                         str(tmp_path / "nowhere"))
+    assert code == 2 and not (tmp_path / "exp").exists()
+    one_error(lines, "--autoencoder-from", "nowhere", "no such directory")

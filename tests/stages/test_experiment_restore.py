@@ -11,6 +11,7 @@ from pathlib import Path
 
 import polars as pl
 import pytest
+import torch
 
 from test_eval_stage import write_tiny_experiment
 
@@ -171,3 +172,38 @@ def test_a_run_without_a_checkpoint_has_nothing_to_continue(tmp_path: Path) -> N
     run.mkdir()
     (run / "config.toml").write_text("")
     assert continuation_files(run) == ()
+
+
+def test_a_twin_experiment_takes_the_published_autoencoders_and_trains_only_its_flows(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--autoencoder-from a published folder: the twin's TrajFlow run trains its flow alone (other flow settings)
+    and ends where training that config from scratch ends; the runs without an autoencoder train as always."""
+    from safetensors.torch import load_file
+
+    base = write_tiny_experiment(tmp_path, ["cv", "trajflow"], [0])
+    text = base.read_text().replace("set = [", 'set = ["train.ae_max_epochs=2", "train.ae_min_epochs=1", ', 1)
+    base.write_text(text)
+    run_experiment(base, tmp_path / "base", quiet=True)
+    results = tmp_path / "docs" / "results" / "base"
+    load_publish().publish(tmp_path / "base", results)
+    twin = tmp_path / "twin.toml"
+    twin.write_text(text.replace('name = "tiny"', 'name = "twin"')
+                    .replace("set = [", 'set = ["model.flow_standardize=true", "model.flow_tail_bound=5", ', 1))
+    stages: list[str] = []
+    monkeypatch.setattr(train_loop, "_epoch_hook", lambda stage, epoch: stages.append(stage))
+    run_experiment(twin, tmp_path / "twin", quiet=True, autoencoder_from=results)
+    assert stages == ["flow", "flow"]
+    run = tmp_path / "twin" / "runs" / "trajflow-all-s0"
+    info = json.loads((run / "run.json").read_text())
+    assert info["autoencoder_from"]["run"] == str((results / "models" / "trajflow-all-s0").resolve())
+    assert (tmp_path / "twin" / "runs" / "cv-all-s0" / "eval").is_dir()
+    run_experiment(twin, tmp_path / "twin", quiet=True, autoencoder_from=results)  # finished: nothing again
+    assert stages == ["flow", "flow"]
+
+    monkeypatch.setattr(train_loop, "_epoch_hook", None)
+    run_experiment(twin, tmp_path / "scratch", quiet=True)
+    scratch = load_file(tmp_path / "scratch" / "runs" / "trajflow-all-s0" / "final" / "model.safetensors")
+    reused = load_file(run / "final" / "model.safetensors")
+    assert scratch.keys() == reused.keys() and all(torch.equal(scratch[k], reused[k]) for k in scratch)
+    with pytest.raises(UsageError, match="no such directory"):
+        run_experiment(twin, tmp_path / "other", quiet=True, autoencoder_from=tmp_path / "nowhere")

@@ -7,6 +7,7 @@ independent of the dataset readers); the last ones train on a real synthetic-bim
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -681,9 +682,47 @@ def test_a_flow_only_run_from_another_runs_autoencoder_equals_training_from_scra
     assert json.loads((reused / "run.json").read_text())["autoencoder_from"] == info["autoencoder_from"]
 
 
+@pytest.mark.parametrize("kept", ["checkpoints", "published"])
+def test_a_run_with_other_flow_model_settings_takes_the_autoencoder_and_equals_training_from_scratch(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, kept: str) -> None:
+    """The flow's and the context encoders' model settings may differ from the source's (paired ablations): the run
+    trains only its own flow, initialised as its config would, and ends exactly as that config from scratch; the
+    source may be a run kept without checkpoints (a published model: final/, log, run.json, config.toml)."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+    ours = ("model.speed_normalize=true", "model.use_map=false")  # a data constant fitted before the autoencoder
+    source = train(data, tmp_path / "source", **budget_options(3, 2, *ours, "train.flow_lr=0.002"))
+    if kept == "published":
+        shutil.rmtree(source / "checkpoints")
+    other_model = budget_options(3, 2, *ours, "model.flow_standardize=true", "model.flow_tail_bound=5",
+                                 "model.flow_bins=4", 'model.gnn_aggregate="mean"', "model.past_out=32")
+    scratch = train(data, tmp_path / "scratch", **other_model)
+
+    def hook(stage: str, epoch: int) -> None:
+        assert stage == "flow", "the autoencoder must not be trained again"
+
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
+    reused = train(data, tmp_path / "reused", autoencoder_from=source, **other_model)
+    same_run(reused, scratch)
+    info = json.loads((reused / "run.json").read_text())
+    assert info["best"] == json.loads((scratch / "run.json").read_text())["best"]
+    assert info["autoencoder_from"]["autoencoder_epochs"] == 3
+
+
+def test_a_published_source_without_its_log_is_refused(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install_fake_data(monkeypatch, 48, 16)
+    data = tmp_path / "data"
+    source = train(data, tmp_path / "source", **budget_options(1, 1))
+    shutil.rmtree(source / "checkpoints")
+    (source / "train_log.parquet").unlink()
+    with pytest.raises(UsageError, match="without its training log"):
+        train(data, tmp_path / "new", autoencoder_from=source, **budget_options(1, 1))
+    assert not (tmp_path / "new").exists()
+
+
 @pytest.mark.parametrize("change, message", [
     (["train.ae_lr=0.01"], "train.ae_lr"),
-    (["model.flow_layers=3"], "model.flow_layers"),
+    (["model.alpha=5"], "model.alpha"),
     (["--seed"], "train.seed"),
     (["--model"], "'trajflow' run; this run trains 'trajflow-no-ae'"),
     (["--fold"], "fold"),
@@ -702,6 +741,7 @@ def test_an_autoencoder_other_settings_would_not_train_is_refused(monkeypatch: p
         options["model"] = "trajflow-no-ae"
     if change == ["--no-autoencoder"]:
         (source / "checkpoints" / "end-autoencoder.pt").unlink()
+        shutil.rmtree(source / "final")
     with pytest.raises(UsageError, match=message.replace("(", r"\(")):
         train(data, tmp_path / "new", autoencoder_from=source, **options)
     assert not (tmp_path / "new").exists()

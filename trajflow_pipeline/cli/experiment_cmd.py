@@ -40,6 +40,11 @@ def experiment_command(
             "--set augment.0.copies=50 (the first augmentation step)."))] = None,
     no_report: Annotated[bool, typer.Option(
         "--no-report", help="Do not write the report (OUT/report) at the end.")] = False,
+    autoencoder_from: Annotated[Optional[Path], typer.Option(
+        "--autoencoder-from", metavar="DIR", help=(
+            "Another experiment directory, or a folder docs/results/publish.py wrote: each new TrajFlow run whose "
+            "twin (DIR/runs/RUN or DIR/models/RUN) is finished takes its autoencoder and trains only the flow; the "
+            "configs may differ only in flow and context-encoder settings (paired ablations)."))] = None,
     quiet: Quiet = False,
 ) -> None:
     """Build the data stages that changed, train and evaluate every model x fold x seed, write the report; resumable."""
@@ -47,7 +52,8 @@ def experiment_command(
 
     with user_errors(ctx):
         result = run_experiment(config, out, device=device, quiet=quiet, jobs=jobs, only=only or (), ray=ray,
-                                cpus_per_run=cpus_per_run, overrides=set_ or (), report=not no_report)
+                                cpus_per_run=cpus_per_run, overrides=set_ or (), report=not no_report,
+                                autoencoder_from=autoencoder_from)
         done = experiment_complete(result)
     if not quiet and done:
         where = (f"report: {result / REPORT_DIR / 'report.html'}" if not no_report

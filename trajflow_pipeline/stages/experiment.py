@@ -30,6 +30,11 @@ process to the runs whose names match (shell patterns: ``flomo-zara2-s0``, ``'*-
 matches trajflow-no-ae's runs): to have one run trained now, beside a process that works through the plan, or to
 split an experiment between machines. The index
 still covers every finished run of the plan.
+
+``--autoencoder-from DIR`` (another experiment directory, or a folder that ``docs/results/publish.py`` wrote) makes
+each new run whose twin ``DIR/runs/<run>`` or ``DIR/models/<run>`` is finished take that twin's autoencoder and
+train only its flow (`trajflow train --autoencoder-from`): for ablations of flow and context settings, without
+the autoencoder stage, and with both sides on one autoencoder whatever machine trained it. Runs without a twin train their own.
 """
 
 from __future__ import annotations
@@ -51,8 +56,8 @@ from ..errors import TrajflowError, UsageError
 from ..metrics.parallel import resolve_workers
 from ..model.config import RunConfig, load_config
 from ..model.models import MODEL_CLASSES
-from ..rundir import (CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, read_run_config,
-                      read_run_info)
+from ..rundir import (CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, is_trained,
+                      read_run_config, read_run_info)
 from ..schemas import data_mismatch, open_dataset
 from ..training import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
 from ..util import input_files
@@ -101,12 +106,14 @@ def experiment_complete(out: str | Path) -> bool:
 
 def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "auto", quiet: bool = False,
                    jobs: int = 1, only: Sequence[str] = (), ray: str | None = None, cpus_per_run: int = 1,
-                   overrides: Sequence[str] = (), report: bool = False) -> Path:
+                   overrides: Sequence[str] = (), report: bool = False,
+                   autoencoder_from: str | Path | None = None) -> Path:
     """Build the data stages that are not current, then train and evaluate every run of the experiment into `out`
     (resuming what an earlier call left), with `jobs` worker processes, or as tasks of `cpus_per_run` CPUs on the
     Ray cluster at `ray`; with `only` (run-name patterns), just the runs that match; then, with `report` (as the
     command does unless --no-report), write the report into ``out/report``. `overrides` (``KEY=VALUE``) apply on
-    top of the config file. Runs that another process is working on are left to it (see the module docstring)."""
+    top of the config file. With `autoencoder_from`, new runs take their twin's autoencoder there (module
+docstring). Runs that another process is working on are left to it (see the module docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     if jobs > 1 and not claims_supported():
@@ -116,6 +123,9 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
                          "room for (--cpus-per-run sets a run's share)")
     if cpus_per_run < 1:
         raise UsageError(f"--cpus-per-run must be at least 1, got {cpus_per_run}")
+    twins = Path(autoencoder_from) if autoencoder_from is not None else None
+    if twins is not None and not twins.is_dir():
+        raise UsageError(f"--autoencoder-from {twins}: no such directory")
     overrides = list(overrides)
     config = load_experiment(config_path, overrides, check_inputs=True)
     out = Path(out)
@@ -147,11 +157,11 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
             say(f"Ray cluster {ray}: each run a task of {cpus_per_run} CPU(s)"
                 + (" and a GPU" if pool.resources.gpus else "") + f", up to {pool.capacity} at once")
         _work_in_pool(config, data, out, pool, device=device, quiet=quiet, selected=selected, threads=cpus_per_run,
-                      eval_options=replace(config.eval_options, workers=cpus_per_run))
+                      eval_options=replace(config.eval_options, workers=cpus_per_run), twins=twins)
     elif jobs == 1:
-        _work(config, data, out, device=device, quiet=quiet, selected=selected)
+        _work(config, data, out, device=device, quiet=quiet, selected=selected, twins=twins)
     else:
-        _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs, selected=selected)
+        _work_in_processes(config, data, out, device=device, quiet=quiet, jobs=jobs, selected=selected, twins=twins)
     _write_index(out, config, data, plan)
     unfinished = [run_name(*key) for key in plan if not run_done(
         run_dir := out / "runs" / run_name(*key), run_overrides(config, key[0], run_dir), data)]
@@ -301,10 +311,24 @@ class RunJob:
     device: str
     eval_options: EvalOptions
     threads: int | None = None
+    #: --autoencoder-from: the directory whose runs (or published models) of the same name lend their autoencoder
+    twins: Path | None = None
 
     @property
     def name(self) -> str:
         return run_name(self.model, self.fold, self.seed)
+
+    def autoencoder_source(self, run_dir: Path) -> Path | None:
+        """The finished twin whose autoencoder `run_dir` takes: for a new run of a model with an autoencoder stage,
+        the first of ``twins/runs/<run>`` and ``twins/models/<run>`` that is finished; for a run already started,
+        the twin it started from (None if it trained its own)."""
+        if self.twins is None or "autoencoder" not in MODEL_CLASSES[self.model].stages:
+            return None
+        candidates = [self.twins / folder / self.name for folder in ("runs", "models")]
+        if (run_dir / CONFIG_FILE).is_file():
+            recorded = ((read_run_info(run_dir) or {}).get("autoencoder_from") or {}).get("run")
+            return next((c for c in candidates if str(c.resolve()) == recorded), None)
+        return next((c for c in candidates if is_trained(c)), None)
 
 
 @dataclass(frozen=True)
@@ -334,14 +358,15 @@ def _do_run(job: RunJob, *, quiet: bool, starting: Callable[[], None] = lambda: 
         # stopped it: otherwise its model, and so its evaluation, stay as they are), or one a killed worker left.
         model_before = final_model_identity(run_dir)
         train(job.data, run_dir, fold=job.fold, model=job.model, config_path=None, overrides=overrides,
-              seed=job.seed, device=job.device, resume=(run_dir / CONFIG_FILE).is_file(), quiet=quiet)
+              seed=job.seed, device=job.device, resume=(run_dir / CONFIG_FILE).is_file(), quiet=quiet,
+              autoencoder_from=job.autoencoder_source(run_dir))
         if not is_evaluated(run_dir) or final_model_identity(run_dir) != model_before:
             evaluate(run_dir, data=job.data, options=job.eval_options, device=job.device, quiet=quiet)
     return True
 
 
 def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
-          selected: frozenset[str] | None = None) -> None:
+          selected: frozenset[str] | None = None, twins: Path | None = None) -> None:
     """Go through the plan in this process and do each run (of the `selected` names, if given) that is neither
     finished nor claimed by another process; the first error ends the experiment."""
     plan = _plan(config, data)
@@ -357,7 +382,7 @@ def _work(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet
         if run_done(out / "runs" / name, run_overrides(config, model, out / "runs" / name), data):
             note(f"{index}/{len(plan)} {name}: done earlier, skipped", "dim")
             continue
-        job = RunJob(config, data, out, model, fold, seed, device, config.eval_options)
+        job = RunJob(config, data, out, model, fold, seed, device, config.eval_options, twins=twins)
         if not _do_run(job, quiet=quiet, starting=lambda: note(f"{index}/{len(plan)} {name}", "bold")):
             note(f"{index}/{len(plan)} {name}: in progress in another process, left to it", "dim")
             continue
@@ -379,7 +404,8 @@ def _run_task(job: RunJob) -> RunOutcome:
 
 
 def _work_in_pool(config: ExperimentConfig, data: Path, out: Path, pool: Executor, *, device: str, quiet: bool,
-                  selected: frozenset[str], eval_options: EvalOptions, threads: int | None) -> None:
+                  selected: frozenset[str], eval_options: EvalOptions, threads: int | None,
+                  twins: Path | None = None) -> None:
     """Hand each selected run that is not finished to `pool` (in plan order), write the index as runs finish, and
     raise, once every run has ended, a TrajflowError naming each run that failed with its error."""
     plan = _plan(config, data)
@@ -394,7 +420,7 @@ def _work_in_pool(config: ExperimentConfig, data: Path, out: Path, pool: Executo
                 if not quiet:
                     say((f"{index}/{len(plan)} {name}: done earlier, skipped", "dim"))
                 continue
-            job = RunJob(config, data, out, model, fold, seed, device, eval_options, threads)
+            job = RunJob(config, data, out, model, fold, seed, device, eval_options, threads, twins)
             jobs[pool.submit(_run_task, job)] = (index, name)
         for future in as_completed(jobs):
             index, name = jobs[future]
@@ -420,7 +446,7 @@ def _work_in_pool(config: ExperimentConfig, data: Path, out: Path, pool: Executo
 
 
 def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, device: str, quiet: bool,
-                       jobs: int, selected: frozenset[str]) -> None:
+                       jobs: int, selected: frozenset[str], twins: Path | None = None) -> None:
     """The runs in `jobs` worker processes on this machine; torch threads and evaluation workers are shared out."""
     import torch
 
@@ -431,7 +457,7 @@ def _work_in_processes(config: ExperimentConfig, data: Path, out: Path, *, devic
     if not quiet:
         say(f"{jobs} worker processes, {threads} torch thread(s) and {options.workers} evaluation worker(s) each")
     _work_in_pool(config, data, out, LocalPool(jobs), device=device, quiet=quiet, selected=selected,
-                  eval_options=options, threads=threads)
+                  eval_options=options, threads=threads, twins=twins)
 
 
 def _ray_pool(address: str, device: str, cpus: int) -> RayPool:

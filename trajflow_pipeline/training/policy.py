@@ -10,13 +10,15 @@ from pathlib import Path
 from typing import Any
 
 import polars as pl
+import torch
+from torch import Tensor
 
 from ..errors import TrajflowError, UsageError
-from ..model.checkpoint import load_training_state
+from ..model.checkpoint import MODEL_FILE, load_model, load_training_state
 from ..model.config import EXECUTION_KEYS, RunConfig, load_config
 from ..model.models import TrajectoryModel, build_model
-from ..rundir import (CONFIG_FILE, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained, read_run_config,
-                      read_run_info)
+from ..rundir import (CONFIG_FILE, FINAL_DIR, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained,
+                      read_run_config, read_run_info)
 from ..schemas import data_mismatch
 from ..util import input_files
 from .data import TrainingData
@@ -27,6 +29,15 @@ from .state import LOG_SCHEMA, check_state, progress_from, read_state, should_st
 FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_decay", "flow_max_epochs",
                    "flow_min_epochs", "flow_patience", "flow_select", "flow_select_every", "flow_select_problems",
                    "flow_select_samples", "flow_select_max_pooled")
+#: Model settings the autoencoder stage never reads: those of the flow and of the encoders of its context (the
+#: target's past, the social GNN). Each component's initial weights come from its own random stream
+#: (`component_stream`), so runs that differ only in these train the same autoencoder, and one may take the other's.
+AUTOENCODER_FREE_MODEL_KEYS = ("flow_layers", "flow_bins", "flow_tail_bound", "flow_hidden", "flow_standardize",
+                               "past_embed", "past_hidden", "past_layers", "past_out", "gnn_layers", "gnn_width",
+                               "gnn_aggregate")
+#: The state-dict prefixes of the components those settings shape: a run that takes another's autoencoder takes
+#: every other tensor (the autoencoder's weights, the data constants) from it and these from its own initialisation.
+_FLOW_SIDE_PREFIXES = ("flow.", "context.")
 #: Settings a resumed run may raise (its epoch budgets: how long a stage may go on), with the gradient stage each
 #: one limits. None of them changes an epoch before the stage stops, which is what makes a raise exact.
 BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_patience": "autoencoder",
@@ -229,24 +240,78 @@ def source_record(run_dir: Path, source: Path | None, start: dict[str, Any] | No
 
 def autoencoder_start(source: Path, config: RunConfig, data: TrainingData, fold: str | None) -> dict[str, Any]:
     """The training state a new run with `config` starts from when it takes the autoencoder of the run in `source`:
-    that run's state at the end of its autoencoder stage, carrying `config`. Refused (UsageError naming the
+    that run's state at the end of its autoencoder stage (its ``checkpoints/end-autoencoder.pt``, or, for a run
+    kept without checkpoints such as a published model, rebuilt from its final model, log and run.json), carrying
+    `config`, with the flow and context encoders as `config` initialises them. Refused (UsageError naming the
     difference) unless `source` trained the same model on the same data and fold with the same settings, flow
-    training settings aside, so that its autoencoder is the one `config` would train."""
+    training settings and AUTOENCODER_FREE_MODEL_KEYS aside, so that its autoencoder is the one `config` would
+    train."""
     end_path = source / STAGE_END_FILE.format(stage="autoencoder")
-    if not end_path.is_file():
-        raise UsageError(f"{source}: no finished autoencoder stage to start from ({end_path.name} is missing)")
+    if end_path.is_file():
+        state = load_training_state(end_path)
+        where = end_path
+    elif is_trained(source):
+        state, where = _state_from_final(source), source / FINAL_DIR / MODEL_FILE
+    else:
+        raise UsageError(f"{source}: no finished autoencoder stage to start from ({end_path.name} is missing and "
+                         "there is no finished final model)")
     info = run_info(source)
     check_same_data(source, data, resume=True)
     if info.get("fold") != fold:
         raise UsageError(f"{source} was trained for fold {info.get('fold')!r}, this run is for {fold!r}")
-    state = load_training_state(end_path)
     if state.get("model") != config.model.name:
-        raise UsageError(f"{end_path}: a {state.get('model')!r} run; this run trains {config.model.name!r}")
-    trained = state_config(end_path, state)
+        raise UsageError(f"{where}: a {state.get('model')!r} run; this run trains {config.model.name!r}")
+    trained = state_config(where, state)
     flow_settings = {key: getattr(config.train, key) for key in (*FLOW_STAGE_KEYS, *EXECUTION_KEYS)}
-    comparable = replace(trained, train=replace(trained.train, **flow_settings))
+    flow_model = {key: getattr(config.model, key) for key in AUTOENCODER_FREE_MODEL_KEYS}
+    comparable = replace(trained, train=replace(trained.train, **flow_settings),
+                         model=replace(trained.model, **flow_model))
     if comparable != config:
         raise UsageError(f"{source} trained its autoencoder with other settings "
-                         f"({first_difference(comparable, config)}); only train.flow_* settings may differ")
-    check_state(end_path, state, build_model(trained.model, data.spec))
-    return {**state, "config": config.to_json()}
+                         f"({first_difference(comparable, config)}); only train.flow_* settings and the flow's and "
+                         "context encoders' model settings may differ")
+    check_state(where, state, build_model(trained.model, data.spec))
+    fresh = _initial_weights(config, data)
+    return {**state, "config": config.to_json(), "weights": _autoencoder_into(fresh, state["weights"]),
+            "best_weights": (None if state["best_weights"] is None
+                             else _autoencoder_into(fresh, state["best_weights"]))}
+
+
+def _state_from_final(source: Path) -> dict[str, Any]:
+    """The end-of-autoencoder training state of a finished run kept without its checkpoints: the autoencoder's
+    best weights from the final model (the flow stage never changes them), its epochs from the log, its best epoch
+    from run.json. What it lacks (the last epoch's weights, the optimizer) the stage, being over, never reads."""
+    config = read_run_config(source)
+    if config is None:
+        raise UsageError(f"{source}: no {CONFIG_FILE} beside its final model, so its autoencoder's settings are "
+                         "unknown")
+    model = load_model(source / FINAL_DIR)
+    info = run_info(source)
+    best = (info.get("best") or {}).get("autoencoder")
+    log_path = source / LOG_FILE
+    if not log_path.is_file() or not isinstance(best, dict):
+        raise UsageError(f"{source}: a final model without its training log or run.json's best autoencoder epoch; "
+                         "its autoencoder stage cannot be taken")
+    log = input_files.read_parquet(log_path).filter(pl.col("stage") == "autoencoder")
+    epochs, best_epoch = log.height, int(best["epoch"])
+    weights = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
+    return {"model": model.name, "config": config.to_json(), "stage_index": 0, "epoch": epochs,
+            "best_val": float(best["val_loss"]), "best_epoch": best_epoch, "bad_epochs": epochs - best_epoch,
+            "weights": weights, "best_weights": weights, "selected_nll": math.inf, "selected_epoch": 0,
+            "optimizer": None, "scheduler": None, "log": log.to_dicts(), "best": {"autoencoder": best},
+            "skipped_total": int(log.get_column("skipped_steps").sum()), "started": str(info.get("started", "")),
+            "code_revisions": info.get("code_revisions"), "machines": info.get("machines")}
+
+
+def _initial_weights(config: RunConfig, data: TrainingData) -> dict[str, Tensor]:
+    """The weights a fresh run of `config` starts with (Session.run builds its model so), torch's global random
+    state left as it was."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.train.seed)
+        return build_model(config.model, data.spec, seed=config.train.seed).state_dict()
+
+
+def _autoencoder_into(fresh: dict[str, Tensor], source: dict[str, Tensor]) -> dict[str, Tensor]:
+    """`fresh` with every tensor but the flow's and the context encoders' taken from `source`."""
+    return {name: (tensor if name.startswith(_FLOW_SIDE_PREFIXES) else source[name]).clone()
+            for name, tensor in fresh.items()}
