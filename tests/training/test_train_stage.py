@@ -709,15 +709,21 @@ def test_a_run_with_other_flow_model_settings_takes_the_autoencoder_and_equals_t
     assert info["autoencoder_from"]["autoencoder_epochs"] == 3
 
 
-def test_a_published_source_without_its_log_is_refused(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def test_a_published_source_needs_its_training_log(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     install_fake_data(monkeypatch, 48, 16)
     data = tmp_path / "data"
     source = train(data, tmp_path / "source", **budget_options(1, 1))
     shutil.rmtree(source / "checkpoints")
+    log = pl.read_parquet(source / "train_log.parquet")
+    log.drop("stage").write_parquet(source / "train_log.parquet")
+    with pytest.raises(DataError, match="train_log.parquet.*no column 'stage'"):
+        train(data, tmp_path / "new", autoencoder_from=source, **budget_options(1, 1))
     (source / "train_log.parquet").unlink()
     with pytest.raises(UsageError, match="without its training log"):
         train(data, tmp_path / "new", autoencoder_from=source, **budget_options(1, 1))
     assert not (tmp_path / "new").exists()
+    log.drop("val_nll").write_parquet(source / "train_log.parquet")  # an older log: taken
+    train(data, tmp_path / "new", autoencoder_from=source, **budget_options(1, 1))
 
 
 @pytest.mark.parametrize("change, message", [

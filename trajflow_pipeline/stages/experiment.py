@@ -34,7 +34,8 @@ still covers every finished run of the plan.
 ``--autoencoder-from DIR`` (another experiment directory, or a folder that ``docs/results/publish.py`` wrote) makes
 each new run whose twin ``DIR/runs/<run>`` or ``DIR/models/<run>`` is finished take that twin's autoencoder and
 train only its flow (`trajflow train --autoencoder-from`): for ablations of flow and context settings, without
-the autoencoder stage, and with both sides on one autoencoder whatever machine trained it. Runs without a twin train their own.
+the autoencoder stage, and with both sides on one autoencoder whatever machine trained it. Runs without a twin
+train their own.
 """
 
 from __future__ import annotations
@@ -112,8 +113,8 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     (resuming what an earlier call left), with `jobs` worker processes, or as tasks of `cpus_per_run` CPUs on the
     Ray cluster at `ray`; with `only` (run-name patterns), just the runs that match; then, with `report` (as the
     command does unless --no-report), write the report into ``out/report``. `overrides` (``KEY=VALUE``) apply on
-    top of the config file. With `autoencoder_from`, new runs take their twin's autoencoder there (module
-docstring). Runs that another process is working on are left to it (see the module docstring)."""
+    top of the config file. With `autoencoder_from`, new runs take their twin's autoencoder there. Runs that
+    another process is working on are left to it (see the module docstring)."""
     if jobs < 1:
         raise UsageError(f"--jobs must be at least 1, got {jobs}")
     if jobs > 1 and not claims_supported():

@@ -13,7 +13,7 @@ import polars as pl
 import torch
 from torch import Tensor
 
-from ..errors import TrajflowError, UsageError
+from ..errors import DataError, TrajflowError, UsageError
 from ..model.checkpoint import MODEL_FILE, load_model, load_training_state
 from ..model.config import EXECUTION_KEYS, RunConfig, load_config
 from ..model.models import TrajectoryModel, build_model
@@ -289,10 +289,16 @@ def _state_from_final(source: Path) -> dict[str, Any]:
     info = run_info(source)
     best = (info.get("best") or {}).get("autoencoder")
     log_path = source / LOG_FILE
-    if not log_path.is_file() or not isinstance(best, dict):
+    if not log_path.is_file() or not isinstance(best, dict) or not {"epoch", "val_loss"} <= set(best):
         raise UsageError(f"{source}: a final model without its training log or run.json's best autoencoder epoch; "
                          "its autoencoder stage cannot be taken")
-    log = input_files.read_parquet(log_path).filter(pl.col("stage") == "autoencoder")
+    log = input_files.read_parquet(log_path)
+    missing = sorted(set(LOG_SCHEMA) - set(log.columns) - {"val_nll"})  # val_nll: absent from older logs
+    if missing:
+        raise DataError(f"not a training log: no column {missing[0]!r}", log_path)
+    if "val_nll" not in log.columns:
+        log = log.with_columns(val_nll=pl.lit(None, dtype=pl.Float64))
+    log = log.select(list(LOG_SCHEMA)).cast(LOG_SCHEMA).filter(pl.col("stage") == "autoencoder")
     epochs, best_epoch = log.height, int(best["epoch"])
     weights = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
     return {"model": model.name, "config": config.to_json(), "stage_index": 0, "epoch": epochs,
