@@ -207,3 +207,22 @@ def test_a_twin_experiment_takes_the_published_autoencoders_and_trains_only_its_
     assert scratch.keys() == reused.keys() and all(torch.equal(scratch[k], reused[k]) for k in scratch)
     with pytest.raises(UsageError, match="no such directory"):
         run_experiment(twin, tmp_path / "other", quiet=True, autoencoder_from=tmp_path / "nowhere")
+
+
+def test_an_experiment_killed_in_its_first_run_can_be_published(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The index is written before any work: a kill before the first run finishes leaves what publish.py reads,
+    and the run's resume state is published."""
+    config = write_tiny_experiment(tmp_path, ["trajflow-no-ae"], [0])
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == ("flow", 1):
+            raise Killed()
+
+    monkeypatch.setattr(train_loop, "_epoch_hook", hook)
+    with pytest.raises(Killed):
+        run_experiment(config, tmp_path / "exp", quiet=True)
+    assert json.loads((tmp_path / "exp" / "experiment.json").read_text())["runs"] == []
+    results = tmp_path / "results"
+    load_publish().publish(tmp_path / "exp", results)
+    assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["trajflow-no-ae-all-s0"]

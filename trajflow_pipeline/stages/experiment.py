@@ -153,6 +153,9 @@ def run_experiment(config_path: str | Path, out: str | Path, *, device: str = "a
     pool = _ray_pool(ray, device, cpus_per_run) if ray is not None and left else None
     out.mkdir(parents=True, exist_ok=True)
     save_experiment_config(out, text, overrides)
+    # The index before any work, so that an experiment killed before its first run finishes can still be published
+    # (docs/results/publish.py reads it) with the resume states of the runs it was training.
+    _write_index(out, config, data, plan)
     if pool is not None:
         if not quiet:
             say(f"Ray cluster {ray}: each run a task of {cpus_per_run} CPU(s)"
