@@ -184,6 +184,24 @@ def test_sampling_on_columns_is_the_transform_inverse(standardize: bool) -> None
                                                                                    rtol=1e-4, atol=1e-3)
 
 
+def test_tempered_sampling_draws_and_scores_with_the_wider_base() -> None:
+    """At temperature T the base draws are T times the standard ones (the same stream), and each draw's
+    log-density is the flow's with the base N(0, T^2 I): the fitted density's, less log N(z; 0, I), plus
+    log N(z; 0, T^2 I)."""
+    flow = _flow(sharpen=3.0)
+    c = torch.randn(16, 4, dtype=torch.float64)
+    standard = flow.noise(c, 7, torch.Generator().manual_seed(5))
+    z = flow.noise(c, 7, torch.Generator().manual_seed(5), temperature=1.5)
+    assert torch.equal(z, standard * 1.5)
+    x, log_lik = flow.from_noise(z, c, temperature=1.5)
+    assert torch.equal(x, flow.from_noise(z, c)[0])
+    fitted = flow.log_prob(x.reshape(-1, 6), c.repeat(7, 1)).reshape(7, 16)
+    base = torch.distributions.Normal(0.0, 1.0)
+    tempered = fitted - base.log_prob(z).sum(-1) + torch.distributions.Normal(0.0, 1.5).log_prob(z).sum(-1)
+    assert torch.allclose(log_lik, tempered, atol=1e-8)
+    assert torch.equal(flow.from_noise(standard, c, temperature=1.0)[1], flow.from_noise(standard, c)[1])
+
+
 def test_sampling_runs_each_conditioner_once() -> None:
     flow = ConditionalSplineFlow(20, 8)
     calls = []

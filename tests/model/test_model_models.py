@@ -108,6 +108,25 @@ def test_sample_log_lik_is_the_flow_density_of_the_sample() -> None:
     assert torch.allclose(replay, log_lik[:, 0], atol=5e-2)
 
 
+@pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae", "flomo"])
+def test_flow_temperature_widens_the_draws_only(name: str) -> None:
+    """model.flow_temperature changes the draws (and their scores) and nothing the training reads: the same
+    weights give the same training log-likelihoods; at T the draws are those of the base noise scaled by T."""
+    batch = crowd_batch(6, neighbours=3)
+    model = _model(name)
+    warm = _model(name, flow_temperature=1.5)
+    warm.load_state_dict(model.state_dict())
+    assert torch.equal(warm.log_likelihood(batch), model.log_likelihood(batch))
+    draws, log_lik = warm.sample(batch, 50, generator=torch.Generator().manual_seed(3))
+    cold, cold_log_lik = model.sample(batch, 50, generator=torch.Generator().manual_seed(3))
+    spread = lambda d: (d - d.mean(1, keepdim=True)).norm(dim=-1).mean()   # noqa: E731
+    assert spread(draws) > spread(cold)
+    norm = warm.normalize(batch)
+    context = warm.context(batch, norm.frame, norm.local_past)
+    z = warm.flow.noise(context, 50, torch.Generator().manual_seed(3), 1.5)
+    assert torch.allclose(log_lik.T, warm.flow.from_noise(z, context, 1.5)[1], atol=1e-4)
+
+
 def test_decoder_rolls_out_past_the_trained_horizon() -> None:
     torch.manual_seed(0)
     ae = TrajectoryAutoencoder()

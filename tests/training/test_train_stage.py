@@ -404,6 +404,47 @@ def test_flow_standardize_is_fitted_logged_saved_and_resumed(monkeypatch: pytest
         assert torch.equal(a[name], b[name]), name
 
 
+def test_flow_temperature_grid_fits_the_sampling_temperature_after_the_flow(monkeypatch: pytest.MonkeyPatch,
+                                                                           tmp_path: Path) -> None:
+    """model.flow_temperature_grid: a stage "temperature" after the flow keeps the grid value of the lowest
+    sample-based validation NLL, logs and records the whole curve, saves the choice with the weights (the model
+    then draws with it), leaves the flow as it was, and a resumed run ends as the uninterrupted one."""
+    install_fake_data(monkeypatch, 80, 24)
+    overrides = [*FAST, *TINY_MODEL, "train.flow_max_epochs=2", "train.flow_batch_size=32",
+                 "train.flow_select_samples=20"]
+    grid = ["model.flow_temperature_grid=[0.5, 1.0, 2.0]", "model.flow_temperature_problems=12"]
+    options = dict(model="trajflow-no-ae", quiet=True, overrides=[*overrides, *grid])
+    whole = train(tmp_path / "data", tmp_path / "whole", **options)
+    log = log_of(whole)
+    assert log.get_column("stage").unique(maintain_order=True).to_list() == ["flow", "temperature"]
+    best = json.loads((whole / "run.json").read_text())["best"]["temperature"]
+    curve = best["val_nll_by_temperature"]
+    assert set(curve) == {"0.5", "1", "2"} and len(set(curve.values())) == 3 and best["problems"] == 12
+    assert best["val_nll"] == min(curve.values()) == curve[f"{best['temperature']:g}"]
+    assert log.filter(pl.col("stage") == "temperature").get_column("val_nll").to_list() == [best["val_nll"]]
+    model = load_model(whole / "final")
+    assert model.stages == ("flow", "temperature") and model.sampling_temperature() == best["temperature"]
+
+    fitted = final_weights(whole)
+    plain = final_weights(train(tmp_path / "data", tmp_path / "plain", model="trajflow-no-ae", quiet=True,
+                                overrides=overrides))
+    assert set(fitted) - set(plain) == {"fitted_temperature"}
+    for name, tensor in plain.items():  # the stage changes the draws' temperature, not the flow
+        assert torch.equal(fitted[name], tensor), name
+
+    parts = final_weights(train_killed_and_resumed(monkeypatch, tmp_path / "parts", ("flow", 1), **options))
+    assert parts.keys() == fitted.keys()
+    for name in fitted:
+        assert torch.equal(fitted[name], parts[name]), name
+
+
+def test_flow_temperature_and_its_grid_exclude_each_other() -> None:
+    with pytest.raises(UsageError, match="flow_temperature_grid"):
+        load_config(overrides=["model.flow_temperature=1.2", "model.flow_temperature_grid=[1.0, 1.2]"])
+    with pytest.raises(UsageError, match="flow_temperature_grid"):
+        load_config(overrides=["model.flow_temperature_grid=[0.0, 1.2]"])
+
+
 def test_speed_normalize_fits_its_reference_once_saves_it_and_resumes(monkeypatch: pytest.MonkeyPatch,
                                                                      tmp_path: Path) -> None:
     """model.speed_normalize: the reference pace is the training split's median scene speed, fitted before the
@@ -639,7 +680,7 @@ def test_a_raised_budget_with_val_nll_selection_keeps_what_a_longer_run_keeps(mo
 
     # Scripted checks: the unscheduled one at epoch 3 would win if the continuation remembered it.
     scripted = {2: -1.0, 3: -5.0, 4: -2.0, 5: -3.0}
-    monkeypatch.setattr(train_loop.Session, "_sample_nll", lambda self, batch, subset, epoch: scripted[epoch])
+    monkeypatch.setattr(train_loop.Session, "_sample_nll", lambda self, batch, subset, label: scripted[int(label.split()[-1])])
     run = train(tmp_path / "data", tmp_path / "run", **options(3))
     assert log_of(run).filter(pl.col("val_nll").is_not_null()).get_column("epoch").to_list() == [2, 3]
     assert json.loads((run / "run.json").read_text())["best"]["flow"]["epoch"] == 3

@@ -58,6 +58,17 @@ class ModelConfig:
     #: stage "standardize" before the flow trains), so that flow_tail_bound is in standard deviations and the
     #: splines' bins cover the data whatever its units (see ConditionalSplineFlow).
     flow_standardize: bool = False
+    #: Not in the paper: the standard deviation of the flow's base distribution when it draws futures (and scores
+    #: them: the draws' log-likelihoods are the density with that base); training fits the flow with 1 whatever
+    #: this is. Above 1 the draws spread wider around the same modes (see docs/results/eth_ucy_temperature).
+    flow_temperature: float = bounded(1.0, gt=0)
+    #: Not in the paper: fit that temperature instead of setting it. The closed-form stage "temperature", after the
+    #: flow, draws futures for `flow_temperature_problems` fixed validation problems at each of these values and
+    #: keeps the one of the lowest evaluation NLL (ROME densities of the draws pooled over identical inputs, with
+    #: train.flow_select_samples draws, at most train.flow_select_max_pooled per pool), saved with the weights.
+    #: Empty (the default): no such stage; flow_temperature applies.
+    flow_temperature_grid: tuple[float, ...] = bounded((), gt=0)
+    flow_temperature_problems: int = bounded(2000, ge=1)
     # Past encoder of the target: Linear(2->embed)+ReLU -> GRU(embed, hidden, layers) -> Linear(hidden->out).
     past_embed: int = bounded(16, ge=1)
     past_hidden: int = bounded(16, ge=1)
@@ -113,6 +124,9 @@ class ModelConfig:
         if self.gnn_aggregate not in GNN_AGGREGATES:
             raise UsageError(f"model.gnn_aggregate must be one of {', '.join(GNN_AGGREGATES)}, not "
                              f"{self.gnn_aggregate!r}")
+        if self.flow_temperature_grid and self.flow_temperature != 1.0:
+            raise UsageError("model.flow_temperature_grid fits the sampling temperature: leave model.flow_temperature "
+                             "at 1 with it (or set the temperature and no grid)")
         if not self.flow_hidden:
             raise UsageError("model.flow_hidden must be a non-empty list of positive widths")
         if self.speed_normalize and (self.scale_augment_std > 0 or (self.name == "flomo" and self.flomo_scale_std > 0)):

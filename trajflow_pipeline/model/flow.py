@@ -325,18 +325,22 @@ class ConditionalSplineFlow(nn.Module):
         """The generative direction z -> x; z may carry leading sample dimensions (..., B, D)."""
         return self._out(self.transform(context).inv(z))
 
-    def sample(self, context: Tensor, n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-        """n samples per context row and their log-densities: (n, B, D) and (n, B)."""
-        return self.from_noise(self.noise(context, n, generator), context)
+    def sample(self, context: Tensor, n: int, generator: torch.Generator | None = None,
+               temperature: float = 1.0) -> tuple[Tensor, Tensor]:
+        """n samples per context row and their log-densities: (n, B, D) and (n, B); with a base N(0, T^2 I)."""
+        return self.from_noise(self.noise(context, n, generator, temperature), context, temperature)
 
-    def noise(self, context: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
-        """n base draws z ~ N(0, I) per context row: (n, B, D)."""
-        return torch.randn((n, context.shape[0], self.features), generator=generator, device=context.device,
-                           dtype=context.dtype)
+    def noise(self, context: Tensor, n: int, generator: torch.Generator | None = None,
+              temperature: float = 1.0) -> Tensor:
+        """n base draws z ~ N(0, T^2 I) per context row: (n, B, D) (T = `temperature`; the same stream for any T)."""
+        z = torch.randn((n, context.shape[0], self.features), generator=generator, device=context.device,
+                        dtype=context.dtype)
+        return z if temperature == 1.0 else z * temperature
 
     @torch.no_grad()
-    def from_noise(self, z: Tensor, context: Tensor) -> tuple[Tensor, Tensor]:
-        """The samples x (n, B, D) that base draws z (n, B, D) map to, and their log-densities (n, B).
+    def from_noise(self, z: Tensor, context: Tensor, temperature: float = 1.0) -> tuple[Tensor, Tensor]:
+        """The samples x (n, B, D) that base draws z (n, B, D) map to, and their log-densities (n, B) under the
+        flow with the base N(0, T^2 I) (T = `temperature`).
 
         The transform's inverse (``from_base``) evaluated column-wise (:meth:`SplineCoupling.inverse_columns`):
         the draws are stored as columns of one (D, n * B) tensor through all couplings and permutations, so every
@@ -352,7 +356,7 @@ class ConditionalSplineFlow(nn.Module):
                 columns = columns[torch.argsort(_permutation(part).order)]
         if self.standardize:
             columns = columns * self.scale[:, None] + self.shift[:, None]
-        log_lik = standard_normal_log_prob(z) - ladj.view(n, size) + self._log_scale()
+        log_lik = scaled_normal_log_prob(z, temperature) - ladj.view(n, size) + self._log_scale()
         return columns.view(features, n, size).permute(1, 2, 0), log_lik
 
 
@@ -367,3 +371,10 @@ def _permutation(part: nn.Module) -> PermutationTransform:
 def standard_normal_log_prob(z: Tensor) -> Tensor:
     """log N(z; 0, I) summed over the last dimension."""
     return -0.5 * (z ** 2).sum(-1) - 0.5 * z.shape[-1] * math.log(2 * math.pi)
+
+
+def scaled_normal_log_prob(z: Tensor, scale: float) -> Tensor:
+    """log N(z; 0, scale^2 I) summed over the last dimension (standard_normal_log_prob's bits at scale 1)."""
+    if scale == 1.0:
+        return standard_normal_log_prob(z)
+    return standard_normal_log_prob(z / scale) - z.shape[-1] * math.log(scale)

@@ -5,7 +5,9 @@ Common interface (:class:`TrajectoryModel`):
 * ``stages`` -- the training stages in order; ``stage_loss(stage, batch)`` is what that stage minimises and
   ``stage_parameters(stage)`` what it trains (everything else is frozen while it runs). A stage listed in
   ``closed_form_stages`` is fitted in one pass by ``fit_stage(stage, batch)`` instead of by gradient descent.
-  The flow models insert the closed-form stage ``standardize`` before ``flow`` when ``model.flow_standardize``.
+  The flow models insert the closed-form stage ``standardize`` before ``flow`` when ``model.flow_standardize``,
+  and append ``temperature`` (fitted by the training loop from draws on the validation split, see
+  :meth:`FlowModel.set_sampling_temperature`) when ``model.flow_temperature_grid`` is set.
 * ``loss(batch)`` -- the final stage's loss (the flow NLL for the flow models).
 * ``log_likelihood(batch)`` -- log-density of each problem's ground-truth future under the model, in the space
   named by ``log_lik_space``.
@@ -216,6 +218,7 @@ class FlowModel(TrajectoryModel):
 
     log_lik_space = "scaled_displacements"
     STANDARDIZE = "standardize"
+    TEMPERATURE = "temperature"
 
     def __init__(self, config: ModelConfig, spec: DataSpec, features: int, seed: int = 0) -> None:
         super().__init__(config, spec)
@@ -236,18 +239,49 @@ class FlowModel(TrajectoryModel):
                                               bins=config.flow_bins, tail_bound=config.flow_tail_bound,
                                               hidden=tuple(config.flow_hidden), seed=seed,
                                               standardize=config.flow_standardize)
-        if config.flow_standardize:
-            self.stages = self.stages_for(config)
-            self.closed_form_stages = (*self.closed_form_stages, self.STANDARDIZE)
+        if config.flow_temperature_grid:
+            # model.flow_temperature_grid's choice, kept with the weights: NaN until the stage "temperature" runs
+            self.register_buffer("fitted_temperature", torch.tensor(float("nan")))
+        self.stages = self.stages_for(config)
+        self.closed_form_stages = (*self.closed_form_stages,
+                                   *(s for s in (self.STANDARDIZE, self.TEMPERATURE) if s in self.stages))
 
     @classmethod
     def stages_for(cls, config: ModelConfig) -> tuple[str, ...]:
-        """The family's stages, with the closed-form "standardize" fit before the flow when the config asks for it."""
-        if not config.flow_standardize:
-            return cls.stages
-        return (*cls.stages[:-1], cls.STANDARDIZE, cls.stages[-1])
+        """The family's stages, with the closed-form "standardize" fit before the flow and "temperature" after it
+        when the config asks for them."""
+        stages = cls.stages
+        if config.flow_standardize:
+            stages = (*stages[:-1], cls.STANDARDIZE, stages[-1])
+        if config.flow_temperature_grid:
+            stages = (*stages, cls.TEMPERATURE)
+        return stages
+
+    def sampling_temperature(self) -> float:
+        """The standard deviation of the flow's base distribution when it draws: model.flow_temperature, or with
+        model.flow_temperature_grid the fitted one (1 until the stage "temperature" sets it, e.g. while the flow
+        stage checks its draws)."""
+        if not self.config.flow_temperature_grid:
+            return self.config.flow_temperature
+        fitted = float(self.fitted_temperature)
+        return fitted if math.isfinite(fitted) else 1.0
+
+    def set_sampling_temperature(self, temperature: float) -> None:
+        """Set the temperature the stage "temperature" chose (kept with the weights; model.flow_temperature_grid
+        only: without it the temperature is the config's)."""
+        if not self.config.flow_temperature_grid:
+            raise ValueError("the sampling temperature is model.flow_temperature: set model.flow_temperature_grid to "
+                             "fit it")
+        self.fitted_temperature.fill_(float(temperature))
+
+    def loss(self, batch: SceneBatch) -> Tensor:
+        """The flow's mean NLL (nats) in ``log_lik_space``, whatever closed-form stage follows it."""
+        return self.flow_nll(batch)
 
     def fit_stage(self, stage: str, batch: SceneBatch) -> None:
+        if stage == self.TEMPERATURE:
+            raise ValueError("the stage temperature is fitted from draws on the validation split by the training "
+                             "loop (set_sampling_temperature), not from a training batch")
         if stage != self.STANDARDIZE or not self.config.flow_standardize:
             super().fit_stage(stage, batch)
             return
@@ -341,12 +375,13 @@ class FlowModel(TrajectoryModel):
         steps = _check_steps(steps, self.spec.n_future)
         norm = self.normalize(batch)
         context = self.context(batch, norm.frame, norm.local_past)
-        z = self.flow.noise(context, n, generator)                               # all draws first: one stream
+        temperature = self.sampling_temperature()
+        z = self.flow.noise(context, n, generator, temperature)                  # all draws first: one stream
         per_chunk = max(1, self.SAMPLE_CHUNK_ROWS // max(n, 1))
         displacements, log_lik = [], []
         for first in range(0, len(batch), per_chunk):
             chunk = slice(first, first + per_chunk)
-            x, chunk_log_lik = self.flow.from_noise(z[:, chunk], context[chunk])  # (n, b, D), (n, b)
+            x, chunk_log_lik = self.flow.from_noise(z[:, chunk], context[chunk], temperature)  # (n, b, D), (n, b)
             displacements.append(self.decode(x, steps).transpose(0, 1))           # (b, n, steps, 2)
             log_lik.append(chunk_log_lik.transpose(0, 1))
         trajectories = denormalize_future(torch.cat(displacements), norm.frame, self.config.alpha)

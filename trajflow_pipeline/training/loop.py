@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import polars as pl
 import torch
 from rich.progress import TextColumn
@@ -21,8 +22,8 @@ from ..errors import DataError, UsageError
 from ..model.batch import SceneBatch
 from ..model.checkpoint import save_model, save_training_state
 from ..model.compiled import compiled_kernels, preload_kernels
-from ..model.config import StageSchedule
-from ..model.models import build_model
+from ..model.config import StageSchedule, TrainConfig
+from ..model.models import FlowModel, build_model
 from ..rundir import (BEST_FILE, CONFIG_FILE, FINAL_DIR, LOWEST_VAL_LOSS_FILE, STAGE_END_FILE, STATE_FILE, is_trained,
                       read_compiled_kernels, write_compiled_kernels)
 from ..util.atomic import atomic_write_text
@@ -84,7 +85,9 @@ class Session(RunRecords):
         with make_progress(self.quiet or not self.writer, TextColumn("{task.fields[status]}", markup=False)) as bars:
             for index in range(stage_index, len(stages)):
                 stage = stages[index]
-                if stage in self.model.closed_form_stages:
+                if stage == FlowModel.TEMPERATURE:
+                    self._fit_temperature(stage, val_batch)
+                elif stage in self.model.closed_form_stages:
                     self._fit_closed_form(index, stage, train_batch, val_batch)
                 else:
                     self._fit_gradient(index, stage, progress, train_batch, val_batch, bars)
@@ -152,6 +155,28 @@ class Session(RunRecords):
         self.best[stage] = {"epoch": 1, "val_loss": val_loss}
         self._log_epoch(stage, 1, train_loss, val_loss, 0.0, seconds, 0, len(train_batch) / max(seconds, 1e-9))
 
+    def _fit_temperature(self, stage: str, val_batch: SceneBatch) -> None:
+        """model.flow_temperature_grid: keep the sampling temperature whose draws give the lowest evaluation NLL on
+        model.flow_temperature_problems fixed validation problems. Every value draws from the same seeded noise,
+        scaled, so the values differ by the temperature alone. None finite: the grid's value nearest 1, with a
+        warning; the run goes on."""
+        start = time.perf_counter()
+        grid = self.config.model.flow_temperature_grid
+        subset = validation_subset(len(val_batch), self.config.model.flow_temperature_problems,
+                                   self.config.train.seed)
+        curve = {}
+        for temperature in grid:
+            self.model.set_sampling_temperature(temperature)
+            curve[temperature] = self._sample_nll(val_batch, subset, f"temperature {temperature:g}")
+        finite = [t for t in grid if math.isfinite(curve[t])]
+        chosen = min(finite, key=curve.__getitem__) if finite else min(grid, key=lambda t: abs(t - 1.0))
+        self.model.set_sampling_temperature(chosen)
+        seconds = time.perf_counter() - start
+        self.best[stage] = {"epoch": 1, "temperature": chosen, "val_nll": curve[chosen], "problems": len(subset),
+                            "val_nll_by_temperature": {f"{t:g}": curve[t] for t in grid}}
+        self._log_epoch(stage, 1, math.nan, curve[chosen], 0.0, seconds, 0, len(subset) * len(grid) / seconds,
+                        val_nll=curve[chosen])
+
     def _fit_gradient(self, index: int, stage: str, progress: StageProgress, train_batch: SceneBatch,
                       val_batch: SceneBatch, bars: Any) -> None:
         """Train gradient stage `stage` on from `progress`, one epoch at a time, until its epoch limit or early
@@ -205,8 +230,7 @@ class Session(RunRecords):
         schedule = cfg.schedule(stage)
         select_subset = None
         if stage == "flow" and cfg.flow_select == "val_nll":  # a fixed, seeded subset of the validation problems
-            select_subset = torch.randperm(n_val, generator=torch.Generator().manual_seed(cfg.seed))
-            select_subset = select_subset[:cfg.flow_select_problems].sort().values
+            select_subset = validation_subset(n_val, cfg.flow_select_problems, cfg.seed)
         params = self.model.stage_parameters(stage)
         trainable = {id(p) for p in params}
         for p in self.model.parameters():
@@ -302,7 +326,7 @@ class Session(RunRecords):
         if epoch % cfg.flow_select_every == 0 or stop:
             if epoch % cfg.flow_select_every:
                 fit.unscheduled = (progress.selected_nll, progress.selected_epoch, progress.best_weights)
-            val_nll = self._sample_nll(val_batch, fit.select_subset, epoch)
+            val_nll = self._sample_nll(val_batch, fit.select_subset, f"epoch {epoch}")
             keep = math.isfinite(val_nll) and val_nll < progress.selected_nll
             if keep:
                 progress.selected_nll, progress.selected_epoch = val_nll, epoch
@@ -331,36 +355,42 @@ class Session(RunRecords):
             self.model.load_state_dict(progress.best_weights)
         self.best[fit.name] = _best_record(progress, by_sample_nll=fit.select_subset is not None)
 
-    def _sample_nll(self, val_batch: SceneBatch, subset: Tensor, epoch: int) -> float:
-        """The evaluation's NLL (nats; ROME densities of draws, pooled over identical inputs) on the validation
-        problems `subset`, with the same noise at every check so that checks differ only by the weights. Rank 0
-        computes it and every rank gets its value, so all ranks keep the same epoch. Draws ROME cannot fit (non-
-        finite, or all identical) give NaN, which is never kept, with a warning: the run goes on."""
-        from ..metrics import compute_metrics
-
+    def _sample_nll(self, val_batch: SceneBatch, subset: Tensor, label: str) -> float:
+        """:func:`sample_nll` of the model on the validation problems `subset`. Rank 0 computes it and every rank
+        gets its value, so all ranks keep the same epoch (or temperature). Draws ROME cannot fit (non-finite, or
+        all identical) give NaN, which is never kept, with a warning: the run goes on."""
         value: float | None = None
         if self.dist.rank == 0:
-            cfg = self.config.train
-            generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
-            self.model.eval()
-            draws = []
-            with torch.no_grad():
-                for chunk in subset.split(max(1, cfg.eval_batch_size)):
-                    draws.append(self.model.sample(part(val_batch, chunk, self.device), cfg.flow_select_samples,
-                                                   generator=generator)
-                                 .trajectories.double().cpu())
-            ground_truth = val_batch.future.index_select(0, subset.to(val_batch.future.device)).double().cpu()
             try:
-                table = compute_metrics(torch.cat(draws).numpy(), ground_truth.numpy(), metrics=("nll",),
-                                        group_id=self.data.val_groups[subset.numpy()],
-                                        max_pooled=cfg.flow_select_max_pooled, workers=1, quiet=True)
-                value = float(table.filter(pl.col("aggregate")).get_column("value")[0])
+                value = sample_nll(self.model, val_batch, self.data.val_groups, subset, self.config.train,
+                                   self.device)
             except DataError as error:
                 value = math.nan
                 if not self.quiet:
-                    say(("warning:", "yellow"), f" epoch {epoch}: no sample-based validation NLL ({error}); these "
-                        "weights are not kept")
+                    say(("warning:", "yellow"), f" {label}: no sample-based validation NLL ({error}); not kept")
         return float(self.dist.gather(value)[0])
+
+
+def sample_nll(model: nn.Module, val_batch: SceneBatch, val_groups: np.ndarray, subset: Tensor, train: TrainConfig,
+               device: torch.device | str = "cpu") -> float:
+    """The evaluation's NLL (nats; ROME densities of `train.flow_select_samples` draws, pooled over identical
+    inputs as `val_groups` says, at most `train.flow_select_max_pooled` a pool) of `model` on the validation
+    problems `subset`, drawn from noise seeded by `train.seed`: the same noise at every call, so that two calls
+    differ only by the model. DataError where ROME cannot fit the draws."""
+    from ..metrics import compute_metrics
+
+    generator = torch.Generator(device=device).manual_seed(train.seed)
+    model.eval()
+    draws = []
+    with torch.no_grad():
+        for chunk in subset.split(max(1, train.eval_batch_size)):
+            draws.append(model.sample(part(val_batch, chunk, device), train.flow_select_samples, generator=generator)
+                         .trajectories.double().cpu())
+    ground_truth = val_batch.future.index_select(0, subset.to(val_batch.future.device)).double().cpu()
+    table = compute_metrics(torch.cat(draws).numpy(), ground_truth.numpy(), metrics=("nll",),
+                            group_id=val_groups[subset.numpy()], max_pooled=train.flow_select_max_pooled, workers=1,
+                            quiet=True)
+    return float(table.filter(pl.col("aggregate")).get_column("value")[0])
 
 
 def _count_epoch(progress: StageProgress, epoch: int, val_loss: float) -> bool:
@@ -372,6 +402,12 @@ def _count_epoch(progress: StageProgress, epoch: int, val_loss: float) -> bool:
     else:
         progress.bad_epochs += 1
     return improved
+
+
+def validation_subset(n_val: int, problems: int, seed: int) -> Tensor:
+    """The fixed validation problems of the sample-based checks: the first `problems` of a permutation seeded by
+    the training seed, in ascending order."""
+    return torch.randperm(n_val, generator=torch.Generator().manual_seed(seed))[:problems].sort().values
 
 
 def _best_record(progress: StageProgress, by_sample_nll: bool) -> dict[str, Any]:

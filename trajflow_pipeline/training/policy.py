@@ -33,11 +33,13 @@ FLOW_STAGE_KEYS = ("flow_lr", "flow_weight_decay", "flow_batch_size", "flow_lr_d
 #: target's past, the social GNN). Each component's initial weights come from its own random stream
 #: (`component_stream`), so runs that differ only in these train the same autoencoder, and one may take the other's.
 AUTOENCODER_FREE_MODEL_KEYS = ("flow_layers", "flow_bins", "flow_tail_bound", "flow_hidden", "flow_standardize",
+                               "flow_temperature", "flow_temperature_grid", "flow_temperature_problems",
                                "past_embed", "past_hidden", "past_layers", "past_out", "gnn_layers", "gnn_width",
                                "gnn_aggregate")
 #: The state-dict prefixes of the components those settings shape: a run that takes another's autoencoder takes
-#: every other tensor (the autoencoder's weights, the data constants) from it and these from its own initialisation.
-_FLOW_SIDE_PREFIXES = ("flow.", "context.")
+#: every other tensor (the autoencoder's weights, the data constants) from it and these from its own initialisation
+#: (with the fitted sampling temperature of model.flow_temperature_grid, which comes after the flow).
+_FLOW_SIDE_PREFIXES = ("flow.", "context.", "fitted_temperature")
 #: Settings a resumed run may raise (its epoch budgets: how long a stage may go on), with the gradient stage each
 #: one limits. None of them changes an epoch before the stage stops, which is what makes a raise exact.
 BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_patience": "autoencoder",
