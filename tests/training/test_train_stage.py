@@ -680,7 +680,8 @@ def test_a_raised_budget_with_val_nll_selection_keeps_what_a_longer_run_keeps(mo
 
     # Scripted checks: the unscheduled one at epoch 3 would win if the continuation remembered it.
     scripted = {2: -1.0, 3: -5.0, 4: -2.0, 5: -3.0}
-    monkeypatch.setattr(train_loop.Session, "_sample_nll", lambda self, batch, subset, label: scripted[int(label.split()[-1])])
+    monkeypatch.setattr(train_loop.Session, "_sample_nll",
+                        lambda self, batch, subset, label: scripted[int(label.removeprefix("epoch "))])
     run = train(tmp_path / "data", tmp_path / "run", **options(3))
     assert log_of(run).filter(pl.col("val_nll").is_not_null()).get_column("epoch").to_list() == [2, 3]
     assert json.loads((run / "run.json").read_text())["best"]["flow"]["epoch"] == 3

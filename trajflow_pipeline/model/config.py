@@ -60,7 +60,7 @@ class ModelConfig:
     flow_standardize: bool = False
     #: Not in the paper: the standard deviation of the flow's base distribution when it draws futures (and scores
     #: them: the draws' log-likelihoods are the density with that base); training fits the flow with 1 whatever
-    #: this is. Above 1 the draws spread wider around the same modes (see docs/results/eth_ucy_temperature).
+    #: this is. Above 1 the draws spread wider around the same modes (see docs/results/eth_ucy_ours_temperature).
     flow_temperature: float = bounded(1.0, gt=0)
     #: Not in the paper: fit that temperature instead of setting it. The closed-form stage "temperature", after the
     #: flow, draws futures for `flow_temperature_problems` fixed validation problems at each of these values and
