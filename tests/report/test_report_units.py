@@ -12,6 +12,7 @@ import pytest
 from trajflow_pipeline.errors import DataError
 from trajflow_pipeline.report.curves import ade_per_draw, expected_min_curve, subset_min_weights
 from trajflow_pipeline.report.document import Cell, Code, Figure, Heading, Paragraph, Table
+from trajflow_pipeline.report import figures
 from trajflow_pipeline.report.figures import kde_colours, plot_min_ade_k, relative_scale
 from trajflow_pipeline.report.paper import METRICS, metric_columns
 from trajflow_pipeline.report.render import to_html, to_markdown
@@ -83,6 +84,19 @@ def test_figure_helpers_handle_degenerate_input() -> None:
     assert kde_colours(np.zeros((50, 2))).tolist() == [1.0] * 50  # singular covariance: no density
     png = plot_min_ade_k([("cv", np.array([0.5]), None)], 1, "one draw")
     assert png.startswith(PNG_SIGNATURE) and len(png) > 1000
+
+
+def test_training_figure_marks_the_one_epoch_of_a_closed_form_stage(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A closed-form stage (here "temperature": no training loss, its validation NLL) is one epoch per run: drawn
+    as a point, which a line alone would leave invisible; gradient stages stay lines."""
+    monkeypatch.setattr(figures, "to_png", lambda figure: figure)
+    log = pl.DataFrame({"epoch": [1, 2, 3, 1], "stage": ["flow", "flow", "flow", "temperature"],
+                        "train_loss": [-1.0, -2.0, -3.0, float("nan")], "val_loss": [-0.5, -1.5, -2.5, -24.6]})
+    figure = figures.plot_training([("run a", log)], "training")
+    flow, temperature = figure.axes[:2]
+    assert [line.get_marker() for line in flow.get_lines()] == ["None", "None"]
+    assert [line.get_marker() for line in temperature.get_lines()] == ["o", "o"]
+    assert temperature.get_lines()[1].get_ydata().tolist() == [-24.6] and temperature.get_xticks().tolist() == [1]
 
 
 def test_extended_horizon_metrics_get_labelled_columns_after_the_standard_ones() -> None:

@@ -186,16 +186,22 @@ def plot_training(logs: list[tuple[str, pl.DataFrame]], title: str) -> bytes:
                 continue
             epoch = part.get_column("epoch").to_numpy()
             colour = colours(index % 10)
-            ax.plot(epoch, part.get_column("train_loss").to_numpy(), color=colour, linewidth=1.2, label=label)
+            # a closed-form stage (standardize, temperature) is one epoch: a point, which a line would not show
+            marker = "o" if part.height == 1 else None
+            ax.plot(epoch, part.get_column("train_loss").to_numpy(), color=colour, linewidth=1.2, label=label,
+                    marker=marker)
             val = part.get_column("val_loss").cast(pl.Float64).fill_null(np.nan).to_numpy()
             if np.isfinite(val).any():
-                ax.plot(epoch, val, color=colour, linewidth=1.2, linestyle="dashed")
+                ax.plot(epoch, val, color=colour, linewidth=1.2, linestyle="dashed", marker=marker,
+                        fillstyle="none")
         losses = np.concatenate([log.filter(pl.col("stage") == stage).select("train_loss", "val_loss")
                                  .cast(pl.Float64).to_numpy().ravel() for _, log in logs])
         losses = losses[np.isfinite(losses)]
         if losses.size and losses.min() > 0 and losses.max() / losses.min() > 50:
             ax.set_yscale("log")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        if all(log.filter(pl.col("stage") == stage).height <= 1 for _, log in logs):
+            ax.set_xticks([1])
         ax.set_title(f"stage: {stage}", fontsize=10)
         ax.set_xlabel("epoch")
         ax.set_ylabel("loss")
