@@ -20,7 +20,12 @@ Publishing runs `trajflow report EXP -o OUT` (once a run is finished), then writ
 - `unfinished/<run>/`: of every planned run that is not finished but has something to go on from, what continues
   it: `run.json`, `config.toml`, `train_log.parquet` and `checkpoints/state.pt` (its last epoch's training state)
   for a run in training, or `final/` for one trained and not yet evaluated. Runs without a checkpoint yet (they
-  would start again anyway) are left out.
+  would start again anyway) are left out. A last-epoch state larger than the largest file this repository takes
+  (`--max-file-mib`, 2 MiB: a state in the flow stage holds the weights, the best weights and Adam's two moments,
+  ~3.5 MB for ETH/UCY's TrajFlow) is replaced by the run's latest stage-end state that fits
+  (`checkpoints/end-<stage>.pt`, saved as `checkpoints/state.pt`, with the training log cut to its epochs): the
+  copy resumes at the end of that stage, bit-identical to the run there, and trains the later stages again. When
+  no state fits, the last one is published all the same and the summary line says it is over the limit.
 The `models/` and `unfinished/` folders are rebuilt each time; `models/README.md` is kept as it is.
 
 With `--every MINUTES` it publishes again every MINUTES minutes, beside the experiment that is training, until
@@ -53,11 +58,13 @@ import polars as pl
 
 from trajflow_pipeline.errors import TrajflowError
 from trajflow_pipeline.report.collect import report_rows
-from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVALUATION_RECORD, METRICS_FILE, STATE_FILE,
-                                      continuation_files)
+from trajflow_pipeline.model.checkpoint import load_training_state
+from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVALUATION_RECORD, LOG_FILE, METRICS_FILE, STAGE_END_FILE,
+                                      STATE_FILE, continuation_files)
 from trajflow_pipeline.stages.experiment import INDEX_FILE
 from trajflow_pipeline.stages.experiment_config import SAVED_OVERRIDES
 from trajflow_pipeline.stages.report import report
+from trajflow_pipeline.training.state import LOG_SCHEMA
 from trajflow_pipeline.util import input_files
 from trajflow_pipeline.util.atomic import atomic_directory, atomic_file, atomic_write_bytes, atomic_write_text
 
@@ -68,6 +75,8 @@ UNFINISHED_DIR = "unfinished"
 RUNS_DIR = "runs"
 #: a run's metrics table, relative to the run
 RUN_METRICS = f"{EVAL_DIR}/{METRICS_FILE}"
+#: the largest file this repository takes, in bytes (--max-file-mib)
+MAX_FILE_BYTES = 2 * 1024 * 1024
 
 
 def copy_run(run: Path, target: Path, names: Sequence[str]) -> int:
@@ -83,30 +92,70 @@ def copy_run(run: Path, target: Path, names: Sequence[str]) -> int:
     return sum(path.stat().st_size for path in target.rglob("*") if path.is_file())
 
 
-def publish_runs(experiment: Path, out: Path) -> tuple[dict[str, int], dict[str, int]]:
+def resume_state_within(run: Path, limit: int) -> Path | None:
+    """The latest training state of the run in training `run` that is at most `limit` bytes: its last epoch's
+    state, else the end state of its latest finished stage that fits (the most epochs in its log); None when none
+    fits."""
+    if (run / STATE_FILE).stat().st_size <= limit:
+        return run / STATE_FILE
+    ends = [path for path in run.glob(STAGE_END_FILE.format(stage="*")) if path.stat().st_size <= limit]
+    trained = {path: len(load_training_state(path)["log"]) for path in ends}
+    return max(ends, key=trained.__getitem__, default=None)
+
+
+def copy_run_in_training(run: Path, target: Path, names: Sequence[str], limit: int) -> tuple[int, str]:
+    """Copy what continues the run in training `run` into the new directory `target`, its resume state at most
+    `limit` bytes where the run has one that small (:func:`resume_state_within`): a stage-end state goes in as the
+    copy's state.pt with the training log cut to the epochs it holds. Returns the bytes written and what was
+    left out ("" when nothing was)."""
+    state = resume_state_within(run, limit)
+    if state is None:
+        size = (run / STATE_FILE).stat().st_size
+        return copy_run(run, target, names), f"its state is {size:,} bytes, over the {limit:,}-byte limit"
+    if state == run / STATE_FILE:
+        return copy_run(run, target, names), ""
+    kept = [name for name in names if name not in (STATE_FILE, LOG_FILE)]
+    copy_run(run, target, kept)
+    (target / STATE_FILE).parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(state, target / STATE_FILE)
+    pl.DataFrame(load_training_state(state)["log"], schema=LOG_SCHEMA).write_parquet(target / LOG_FILE)
+    dropped = input_files.read_parquet(run / LOG_FILE).height - input_files.read_parquet(target / LOG_FILE).height
+    return (sum(path.stat().st_size for path in target.rglob("*") if path.is_file()),
+            f"resumes from {state.name}, {dropped} later epochs left out: {STATE_FILE} is "
+            f"{(run / STATE_FILE).stat().st_size:,} bytes")
+
+
+def publish_runs(experiment: Path, out: Path, limit: int = MAX_FILE_BYTES
+                 ) -> tuple[dict[str, int], dict[str, int], dict[str, str]]:
     """Rebuild `out/models/` from the experiment's finished runs (experiment.json `runs`, evaluated) and
-    `out/unfinished/` from its other planned runs that have something to go on from; the bytes published per run,
-    finished and unfinished."""
+    `out/unfinished/` from its other planned runs that have something to go on from, resume states within `limit`
+    bytes where they can be (:func:`copy_run_in_training`); the bytes published per run, finished and unfinished,
+    and what was left out of the unfinished ones, per run."""
     index = json.loads(input_files.read_text(experiment / INDEX_FILE))
     listed = set(index["runs"])
     finished: dict[str, int] = {}
     unfinished: dict[str, int] = {}
+    notes: dict[str, str] = {}
     with atomic_directory(out / MODELS_DIR) as models, atomic_directory(out / UNFINISHED_DIR) as others:
         for relative in index.get("planned") or index["runs"]:
             run = experiment / relative
             names = continuation_files(run) if run.is_dir() else ()
             if relative in listed and set(EVALUATION_RECORD) <= set(names):
                 finished[run.name] = copy_run(run, models / run.name, names)
+            elif STATE_FILE in names:
+                unfinished[run.name], note = copy_run_in_training(run, others / run.name, names, limit)
+                if note:
+                    notes[run.name] = note
             elif names:
                 unfinished[run.name] = copy_run(run, others / run.name, names)
         if (out / MODELS_DIR / "README.md").is_file():
             shutil.copy2(out / MODELS_DIR / "README.md", models / "README.md")
     if not unfinished:
         shutil.rmtree(out / UNFINISHED_DIR)
-    return finished, unfinished
+    return finished, unfinished, notes
 
 
-def publish(experiment: Path, out: Path) -> str:
+def publish(experiment: Path, out: Path, limit: int = MAX_FILE_BYTES) -> str:
     """Publish the experiment in `experiment` into `out` (see the module docstring); a one-line summary."""
     index = json.loads(input_files.read_text(experiment / INDEX_FILE))
     rows = 0
@@ -125,11 +174,13 @@ def publish(experiment: Path, out: Path) -> str:
     for name in (CONFIG_FILE, INDEX_FILE, SAVED_OVERRIDES):  # (the --set overrides only where it ran with some)
         if name != SAVED_OVERRIDES or (experiment / name).is_file():
             atomic_write_bytes(out / name, (experiment / name).read_bytes())
-    finished, unfinished = publish_runs(experiment, out)
+    finished, unfinished, notes = publish_runs(experiment, out, limit)
+    sizes = ", ".join(f"{name} {size:,}" + (f" ({notes[name]})" if name in notes else "")
+                      for name, size in unfinished.items())
     return (f"published {out}: " + ("report, " if index["runs"] else "no report (no run is finished), ")
             + f"config, index, {rows} aggregate metric rows, {len(finished)} finished runs "
             f"({sum(finished.values()):,} bytes), {len(unfinished)} unfinished runs ({sum(unfinished.values()):,} "
-            f"bytes{': ' + ', '.join(f'{name} {size:,}' for name, size in unfinished.items()) if unfinished else ''})")
+            f"bytes{': ' + sizes if unfinished else ''})")
 
 
 def restore(results: Path, experiment: Path) -> str:
@@ -171,13 +222,14 @@ def all_finished(experiment: Path) -> bool:
     return set(index.get("planned") or ()) <= set(index["runs"])
 
 
-def publish_every(experiment: Path, out: Path, minutes: float, *, sleep=time.sleep) -> None:
+def publish_every(experiment: Path, out: Path, minutes: float, limit: int = MAX_FILE_BYTES, *,
+                  sleep=time.sleep) -> None:
     """Publish `experiment` into `out` now and every `minutes` minutes until all its planned runs are finished (the
     last round publishes them); a failed round is reported on one line and retried at the next."""
     while True:
         finished = all_finished(experiment)
         try:
-            line = publish(experiment, out)
+            line = publish(experiment, out, limit)
         except (ValueError, OSError, TrajflowError) as error:
             line = f"not published this round ({error}); trying again in {minutes:g} min"
             finished = False
@@ -197,14 +249,20 @@ def main() -> None:
                                                   "the experiment directory to create")
     parser.add_argument("--every", type=float, metavar="MINUTES",
                         help="publish again every MINUTES minutes until every planned run is finished")
+    parser.add_argument("--max-file-mib", type=float, default=MAX_FILE_BYTES / 2**20, metavar="MIB",
+                        help="the largest resume state to publish, in MiB (default: %(default)g); a larger one is "
+                             "replaced by the run's latest stage-end state that fits")
     args = parser.parse_args()
     if args.every is not None and (args.restore or not args.every > 0):
         parser.error("--every takes a positive number of minutes, and does not go with --restore")
+    if not args.max_file_mib > 0:
+        parser.error("--max-file-mib takes a positive number")
+    limit = int(args.max_file_mib * 2**20)
     try:
         if args.every is not None:
-            publish_every(args.source, args.target, args.every)
+            publish_every(args.source, args.target, args.every, limit)
             return
-        print(restore(args.source, args.target) if args.restore else publish(args.source, args.target))
+        print(restore(args.source, args.target) if args.restore else publish(args.source, args.target, limit))
     except (ValueError, OSError, TrajflowError) as error:
         parser.error(str(error))
 

@@ -107,11 +107,11 @@ def test_publishing_every_few_minutes_follows_the_experiment_to_its_end(
     publish = load_publish()
     real, rounds, sleeps = publish.publish, [], []
 
-    def flaky(experiment: Path, out: Path) -> str:
+    def flaky(experiment: Path, out: Path, limit: int) -> str:
         rounds.append(out)
         if len(rounds) == 1:
             raise OSError(f"{experiment}: disk full")
-        return real(experiment, out)
+        return real(experiment, out, limit)
 
     def sleep(seconds: float) -> None:      # the experiment goes on meanwhile, and finishes
         sleeps.append(seconds)
@@ -226,3 +226,47 @@ def test_an_experiment_killed_in_its_first_run_can_be_published(tmp_path: Path,
     results = tmp_path / "results"
     load_publish().publish(tmp_path / "exp", results)
     assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["trajflow-no-ae-all-s0"]
+
+
+def test_a_resume_state_over_the_file_limit_is_published_as_its_last_stage_end_state(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run killed in its flow stage whose state is over the limit is published with its end-of-autoencoder state
+    and the log of those epochs; the restored copy trains its flow again as the run did (the same losses), and
+    a limit that no state fits publishes the last state and says so."""
+    config = write_tiny_experiment(tmp_path, ["trajflow"], [0])
+
+    def hook(stage: str, epoch: int) -> None:
+        if (stage, epoch) == ("flow", 1):
+            raise Killed()
+
+    with monkeypatch.context() as patch:
+        patch.setattr(train_loop, "_epoch_hook", hook)
+        with pytest.raises(Killed):
+            run_experiment(config, tmp_path / "exp", quiet=True)
+    run = tmp_path / "exp" / "runs" / "trajflow-all-s0"
+    state, end = run / "checkpoints" / "state.pt", run / "checkpoints" / "end-autoencoder.pt"
+    assert state.stat().st_size > end.stat().st_size, "the premise: the flow-stage state is the larger one"
+    original = pl.read_parquet(run / "train_log.parquet")
+    assert original.get_column("stage").to_list()[-1] == "flow"
+    publish = load_publish()
+    results = tmp_path / "results"
+    line = publish.publish(tmp_path / "exp", results, limit=end.stat().st_size)
+    assert "resumes from end-autoencoder.pt, 1 later epochs left out" in line
+    cut = results / "unfinished" / "trajflow-all-s0"
+    assert (cut / "checkpoints" / "state.pt").read_bytes() == end.read_bytes()
+    published_log = pl.read_parquet(cut / "train_log.parquet")
+    assert published_log.equals(original.filter(pl.col("stage") == "autoencoder"))
+
+    fresh = tmp_path / "elsewhere"
+    publish.restore(results, fresh)
+    run_experiment(fresh / "config.toml", fresh, quiet=True)
+    resumed = pl.read_parquet(fresh / "runs" / "trajflow-all-s0" / "train_log.parquet")
+    losses = ["epoch", "stage", "train_loss", "val_loss", "lr"]
+    assert resumed.head(original.height).select(losses).equals(original.select(losses)), \
+        "the flow epoch trained again differs from the run's own"
+    assert is_evaluated(fresh / "runs" / "trajflow-all-s0")
+
+    line = publish.publish(tmp_path / "exp", tmp_path / "tight", limit=1000)
+    assert f"its state is {state.stat().st_size:,} bytes, over the 1,000-byte limit" in line
+    assert (tmp_path / "tight" / "unfinished" / "trajflow-all-s0" / "checkpoints" / "state.pt").read_bytes() == \
+        state.read_bytes()
