@@ -253,7 +253,8 @@ def test_raising_an_experiments_budget_continues_and_reevaluates_only_its_stoppe
     lowered = tmp_path / "lowered.toml"
     lowered.write_text(config.read_text().replace('"train.flow_max_epochs=2"', '"train.flow_max_epochs=1"'))
     with pytest.raises(UsageError,
-                       match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets and the data stages may change"):
+                       match=r"flow_max_epochs: 4 vs 1\).*only epoch budgets, the settings of the stage after the flow "
+                                 r"and the data stages may change"):
         run_experiment(lowered, out, quiet=True)
 
 

@@ -270,3 +270,35 @@ def test_a_resume_state_over_the_file_limit_is_published_as_its_last_stage_end_s
     assert f"its state is {state.stat().st_size:,} bytes, over the 1,000-byte limit" in line
     assert (tmp_path / "tight" / "unfinished" / "trajflow-all-s0" / "checkpoints" / "state.pt").read_bytes() == \
         state.read_bytes()
+
+
+def test_a_new_temperature_grid_refits_finished_runs_published_or_not_and_evaluates_them_again(
+        tmp_path: Path) -> None:
+    """An experiment config that adds model.flow_temperature_grid: each finished flow run (here one kept whole and
+    one restored from a published folder, without training states) fits the stage after the flow on its final flow
+    and is evaluated again, the baseline is left as it was, and the two end with the same model and numbers."""
+    config = write_tiny_experiment(tmp_path, ["cv", "trajflow-no-ae"], [0])
+    exp = run_experiment(config, tmp_path / "exp", quiet=True)
+    publish = load_publish()
+    publish.publish(exp, tmp_path / "results")
+    restored = tmp_path / "restored"
+    publish.restore(tmp_path / "results", restored)
+    flow_run, cv_run = "runs/trajflow-no-ae-all-s0", "runs/cv-all-s0"
+    cv_before = (exp / cv_run / "eval" / "eval.json").read_bytes()
+    text = config.read_text().replace('set = ["', 'set = ["model.flow_temperature_grid=[0.8, 1.0, 1.5]", '
+                                      '"model.flow_temperature_problems=10", "')
+    assert text != config.read_text()
+    grid = tmp_path / "grid.toml"
+    grid.write_text(text)
+    for target in (exp, restored):
+        run_experiment(grid, target, quiet=True)
+        info = json.loads((target / flow_run / "run.json").read_text())
+        assert set(info["best"]["temperature"]["val_nll_by_temperature"]) == {"0.8", "1", "1.5"}
+        assert is_evaluated(target / flow_run)
+        assert json.loads((target / "experiment.json").read_text())["runs"] == [cv_run, flow_run]
+    assert (exp / cv_run / "eval" / "eval.json").read_bytes() == cv_before, "the baseline was evaluated again"
+    ours, theirs = (pl.read_parquet(t / flow_run / "eval" / "metrics.parquet").filter(pl.col("aggregate"))
+                    for t in (exp, restored))
+    assert ours.equals(theirs)
+    assert json.loads((exp / flow_run / "run.json").read_text())["best"] == \
+        json.loads((restored / flow_run / "run.json").read_text())["best"]

@@ -438,6 +438,47 @@ def test_flow_temperature_grid_fits_the_sampling_temperature_after_the_flow(monk
         assert torch.equal(fitted[name], parts[name]), name
 
 
+def test_the_temperature_stage_is_added_changed_and_dropped_when_a_run_resumes(monkeypatch: pytest.MonkeyPatch,
+                                                                               tmp_path: Path) -> None:
+    """`train --resume --set model.flow_temperature_grid=...`: a finished run fits the stage after the flow on its
+    final flow and ends as a run trained with that grid from the start (weights, log, record), whether it kept its
+    training state or is a published copy without it; a run in training takes the grid when it gets there; a new
+    grid fits the stage again on the same draws, and an emptied one drops it, back to the flow as it was."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+    base = [*FAST, *TINY_MODEL, "train.flow_max_epochs=2", "train.flow_batch_size=32", "train.flow_select_samples=20"]
+    grid = ["model.flow_temperature_grid=[0.5, 1.0, 2.0]", "model.flow_temperature_problems=12"]
+    options = dict(model="trajflow-no-ae", quiet=True)
+    whole = train(data, tmp_path / "whole", overrides=[*base, *grid], **options)
+    whole_best = json.loads((whole / "run.json").read_text())["best"]
+    run = train(data, tmp_path / "run", overrides=base, **options)
+    plain = final_weights(run)
+    published = tmp_path / "published"
+    shutil.copytree(run, published)
+    shutil.rmtree(published / "checkpoints")
+    interrupted_after_first_epoch(monkeypatch, data, tmp_path / "training", overrides=base, **options)
+    for target in (run, published, tmp_path / "training"):
+        train(data, target, resume=True, overrides=[*base, *grid], **options)
+        same_run(target, whole)
+        info = json.loads((target / "run.json").read_text())
+        assert info["status"] == "finished" and info["best"] == whole_best, target
+        assert load_config(target / "config.toml") == load_config(whole / "config.toml")
+
+    train(data, run, resume=True, overrides=["model.flow_temperature_grid=[1.0, 2.0]"], **options)
+    curve = json.loads((run / "run.json").read_text())["best"]["temperature"]["val_nll_by_temperature"]
+    assert curve == {t: whole_best["temperature"]["val_nll_by_temperature"][t] for t in ("1", "2")}
+    assert log_of(run).filter(pl.col("stage") == "temperature").height == 1
+
+    train(data, run, resume=True, overrides=["model.flow_temperature_grid=[]"], **options)
+    dropped = final_weights(run)
+    assert dropped.keys() == plain.keys() and all(torch.equal(dropped[k], plain[k]) for k in plain)
+    assert log_of(run).get_column("stage").unique().to_list() == ["flow"]
+    assert "temperature" not in json.loads((run / "run.json").read_text())["best"]
+    assert load_model(run / "final").stages == ("flow",)
+    with pytest.raises(UsageError, match="model.flow_temperature_grid / model.flow_temperature_problems changed"):
+        train(data, run, resume=True, overrides=["model.flow_bins=4"], **options)
+
+
 def test_flow_temperature_and_its_grid_exclude_each_other() -> None:
     with pytest.raises(UsageError, match="flow_temperature_grid"):
         load_config(overrides=["model.flow_temperature=1.2", "model.flow_temperature_grid=[1.0, 1.2]"])

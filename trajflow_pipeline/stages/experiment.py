@@ -10,7 +10,9 @@ interrupted training from its last checkpoint, so an interrupted experiment neve
 config may change between calls only by raising epoch budgets (``train.ae_max_epochs`` / ``train.flow_max_epochs`` /
 ``train.ae_patience`` / ``train.flow_patience`` in ``[train] set`` or ``[models.*] set``; comments, name and
 description are free): runs that the larger budget would not have stopped where the old one did then continue from
-their last epoch (see `trajflow train` in docs/usage.md) and are evaluated again.
+their last epoch (see `trajflow train` in docs/usage.md) and are evaluated again; and by the settings of the stage
+after the flow (``model.flow_temperature_grid`` / ``model.flow_temperature_problems``): finished runs fit that stage
+again on their final flow and are evaluated again.
 ``EXP/metrics.parquet`` concatenates every run's metrics; ``EXP/experiment.json`` lists the runs.
 
 Runs are worked on model by model, the models fitted in closed form (the constant-velocity baseline) first: they
@@ -49,18 +51,20 @@ from concurrent.futures import Executor, Future, as_completed
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import polars as pl
 
 from ..data import list_folds
 from ..errors import TrajflowError, UsageError
 from ..metrics.parallel import resolve_workers
-from ..model.config import RunConfig, load_config
+from ..model.config import RunConfig, load_config, toml_value
 from ..model.models import MODEL_CLASSES
 from ..rundir import (CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, is_trained,
                       read_run_config, read_run_info)
 from ..schemas import data_mismatch, open_dataset
-from ..training import BUDGET_KEYS, budget_raise, budget_size, first_difference, raise_blocker
+from ..training import (BUDGET_KEYS, REFIT_MODEL_KEYS, budget_raise, budget_size, first_difference, raise_blocker,
+                        refit_change)
 from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
@@ -198,12 +202,14 @@ def select_runs(plan: list[tuple[str, str | None, int]], only: Sequence[str]) ->
 
 def _check_budgets_only(out: Path, config: ExperimentConfig, quiet: bool) -> None:
     """Accept a config that differs from the one the experiment in `out` was made with only by raised epoch
-    budgets, its data stages (their changes rebuild what they change, and the runs trained on other data are
-    trained again) and comments, name or description; anything else would mix settings in one directory."""
+    budgets, the settings of the stage after the flow (finished runs fit it again), its data stages (their changes
+    rebuild what they change, and the runs trained on other data are trained again) and comments, name or
+    description; anything else would mix settings in one directory."""
     def different(what: str) -> UsageError:
         return UsageError(f"{out}: this experiment directory was made with a different config "
-                          f"({out / SAVED_CONFIG}; {what}); resuming would mix settings (only epoch budgets and the "
-                          f"data stages may change). Use a new -o, or delete it")
+                          f"({out / SAVED_CONFIG}; {what}); resuming would mix settings (only epoch budgets, the "
+                          f"settings of the stage after the flow and the data stages may change). Use a new -o, or "
+                          f"delete it")
 
     try:
         saved = load_saved_experiment(out)
@@ -216,21 +222,29 @@ def _check_budgets_only(out: Path, config: ExperimentConfig, quiet: bool) -> Non
         if before[key] != after[key]:
             raise different(f"{key}: {before[key]!r} vs {after[key]!r}")
     raised: dict[str, tuple[int, int]] = {}
+    refits: dict[str, tuple[Any, Any]] = {}
     for model in config.models:
         before, after = _run_config(saved, model), _run_config(config, model)
         change = budget_raise(before, after)
         if change is None:
             raise different(f"{model}: {first_difference(before, after)}")
         raised.update(change)
+        refits.update(refit_change(before, after))
     if raised and not quiet:
         say("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new) in raised.items())
             + "): runs the larger budget would not have stopped where the old one did continue from their last "
               "epoch and are evaluated again")
+    if refits and not quiet:
+        say("the stage after the flow changed (" + ", ".join(f"{key} {old} -> {new}" for key, (old, new)
+                                                             in refits.items())
+            + "): finished runs fit it again on their final flow and are evaluated again")
 
 
 def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = None) -> list[str]:
     """The `--set` overrides the experiment gives `model`'s runs (the one in `run_dir`, when given), ending with
-    every epoch budget spelled out: the experiment's, or the run's own where that is higher.
+    the settings of the stage after the flow (REFIT_MODEL_KEYS: the experiment's, so that one it no longer sets
+    goes back to the default) and every epoch budget spelled out: the experiment's, or the run's own where that is
+    higher.
 
     A run resumes from its saved config with these applied, so a budget the experiment config no longer sets (an
     override deleted, back to the default) must be named too, or the run would keep its old, lower one. A budget
@@ -238,12 +252,14 @@ def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = N
     lowers a budget, it would only refuse to resume such a run. (A change of the built-in default budget counts as
     a change of the experiment's: its runs would continue to the new default.)"""
     given = [*config.train_overrides, *config.model_overrides.get(model, ())]
-    budgets = load_config(overrides=[*given, f"model.name={model}"]).train
+    requested = load_config(overrides=[*given, f"model.name={model}"])
+    budgets = requested.train
     saved = None if run_dir is None else read_run_config(run_dir)
     own = saved.train if saved is not None else budgets
     larger = {key: max(getattr(budgets, key), getattr(own, key), key=partial(budget_size, key))
               for key in BUDGET_KEYS}  # (a patience of 0, no early stopping, is the largest)
-    return [*given, *(f"train.{key}={value}" for key, value in larger.items())]
+    return [*given, *(f"model.{key}={toml_value(getattr(requested.model, key))}" for key in REFIT_MODEL_KEYS),
+            *(f"train.{key}={value}" for key, value in larger.items())]
 
 
 def _run_config(config: ExperimentConfig, model: str) -> RunConfig:

@@ -20,18 +20,18 @@ from torch.nn.parallel import DistributedDataParallel
 
 from ..errors import DataError, UsageError
 from ..model.batch import SceneBatch
-from ..model.checkpoint import save_model, save_training_state
+from ..model.checkpoint import load_training_state, save_model, save_training_state
 from ..model.compiled import compiled_kernels, preload_kernels
 from ..model.config import StageSchedule, TrainConfig
 from ..model.models import FlowModel, build_model
 from ..rundir import (BEST_FILE, CONFIG_FILE, FINAL_DIR, LOWEST_VAL_LOSS_FILE, STAGE_END_FILE, STATE_FILE, is_trained,
-                      read_compiled_kernels, write_compiled_kernels)
+                      read_compiled_kernels, read_run_config, write_compiled_kernels)
 from ..util.atomic import atomic_write_text
 from ..util.progress import make_progress, say
 from .distributed import derive_seed, epoch_shard
-from .policy import follow_budget
+from .policy import budget_raise, finished_state, follow_budget, refit_change
 from .records import RunRecords
-from .state import StageProgress, read_state, should_stop
+from .state import StageProgress, should_stop
 from .steps import StageObjective, adamw, copy_weights, finite_gradients, mean_loss, on_device, part
 
 #: Called after every completed (and checkpointed) epoch with (stage, epoch); tests use it to simulate a kill.
@@ -111,8 +111,12 @@ class Session(RunRecords):
                 save_training_state(state_path, start)
             return stage_index, progress
         if resume and state_path.is_file():
-            return self._resume(state_path)
+            return self._resume(load_training_state(state_path, expected_model=self.model.name))
         if resume and (self.run_dir / FINAL_DIR).exists():
+            saved = read_run_config(self.run_dir)
+            if saved is not None and is_trained(self.run_dir) and refit_change(saved, self.config) \
+                    and budget_raise(saved, self.config) == {}:
+                return self._resume(finished_state(self.run_dir))  # a published model: the final flow will do
             raise UsageError(f"{self.run_dir}: {STATE_FILE} is missing, so this run cannot be continued or given a "
                              f"larger budget; train into a new directory")
         if self.writer:
@@ -121,9 +125,11 @@ class Session(RunRecords):
             self._write_run_info("training")
         return 0, StageProgress()
 
-    def _resume(self, state_path: Path) -> tuple[int, StageProgress] | None:
-        """Go on from the run's checkpoint, following raised epoch budgets (:func:`~.policy.follow_budget`)."""
-        resumed = follow_budget(self.run_dir, self.config, self.model, read_state(state_path, self.model), self._say)
+    def _resume(self, state: dict[str, Any]) -> tuple[int, StageProgress] | None:
+        """Go on from the run's checkpoint `state` (as read), following raised epoch budgets and new settings of
+        the stage after the flow (:func:`~.policy.follow_budget`)."""
+        state_path = self.run_dir / STATE_FILE
+        resumed = follow_budget(self.run_dir, self.config, self.model, state, self._say)
         self.config = resumed.config
         if resumed.finished:
             if self.writer:
@@ -136,6 +142,7 @@ class Session(RunRecords):
                 self._write_run_info("training")
             save_training_state(state_path, resumed.state)
             atomic_write_text(self.run_dir / CONFIG_FILE, self.config.to_toml())
+            self._write_log()  # the state's: a reopened run's is cut to where it goes on
         elif self.writer and not is_trained(self.run_dir):  # run.json names the code that continues it
             self._write_run_info("training")
         return stage_index, progress

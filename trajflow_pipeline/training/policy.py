@@ -16,13 +16,13 @@ from torch import Tensor
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.checkpoint import MODEL_FILE, load_model, load_training_state
 from ..model.config import EXECUTION_KEYS, RunConfig, load_config
-from ..model.models import TrajectoryModel, build_model
+from ..model.models import FlowModel, TrajectoryModel, build_model
 from ..rundir import (CONFIG_FILE, FINAL_DIR, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained,
                       read_run_config, read_run_info)
 from ..schemas import data_mismatch
 from ..util import input_files
 from .data import TrainingData
-from .state import LOG_SCHEMA, check_state, progress_from, read_state, should_stop, state_config
+from .state import LOG_SCHEMA, check_state, progress_from, should_stop, state_config
 
 #: Training settings that act on the flow stage alone: a run may start from the autoencoder of a run that differs
 #: from it only in these (and in EXECUTION_KEYS: the device, compile_flow).
@@ -44,19 +44,27 @@ _FLOW_SIDE_PREFIXES = ("flow.", "context.", "fitted_temperature")
 #: one limits. None of them changes an epoch before the stage stops, which is what makes a raise exact.
 BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_patience": "autoencoder",
                "flow_patience": "flow"}
+#: Model settings of the closed-form stage "temperature" after the flow (FlowModel.TEMPERATURE): no stage before
+#: it reads them, so a run may change them when it resumes, finished or not. A run past that stage goes back to the
+#: end of its flow (its final flow: the stage changes no weight of it) and fits the stage anew, or drops it when the
+#: grid is emptied (`refit_state`); a finished run needs no training state for that, its final model will do.
+REFIT_MODEL_KEYS = ("flow_temperature_grid", "flow_temperature_problems")
 #: The budget keys as users write them, for messages.
 RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
+#: What a resumed run may change, for messages.
+CHANGEABLE = f"{RAISABLE} may be raised, model.{' / model.'.join(REFIT_MODEL_KEYS)} changed"
 
 
 # ---------------------------------------------------------------------------------------------------- epoch budgets
 
 def budget_raise(old: RunConfig, new: RunConfig) -> dict[str, tuple[int, int]] | None:
     """The epoch budgets `new` raises over `old` ({key: (old, new)}), or None when the two configs differ in
-    anything else (EXECUTION_KEYS aside: the device, compile_flow) or lower a budget; {} when they are the same
-    run."""
+    anything else (EXECUTION_KEYS and the REFIT_MODEL_KEYS of the stage after the flow aside: see `refit_change`)
+    or lower a budget; {} when they are the same run."""
     old_train, new_train = old.train, new.train.with_execution_of(old.train)
     unchanged = replace(new_train, **{key: getattr(old_train, key) for key in BUDGET_KEYS})
-    if old.model != new.model or unchanged != old_train:
+    if replace(new.model, **{key: getattr(old.model, key) for key in REFIT_MODEL_KEYS}) != old.model \
+            or unchanged != old_train:
         return None
     raised = {key: (getattr(old_train, key), getattr(new_train, key)) for key in BUDGET_KEYS
               if getattr(new_train, key) != getattr(old_train, key)}
@@ -68,6 +76,84 @@ def budget_size(key: str, value: int) -> float:
     """How long the budget `key` = `value` lets a stage go on, for ordering budgets: a patience of 0 disables early
     stopping, so it is larger than any other."""
     return math.inf if key.endswith("_patience") and value == 0 else float(value)
+
+
+def refit_change(old: RunConfig, new: RunConfig) -> dict[str, tuple[Any, Any]]:
+    """The settings of the stage after the flow (REFIT_MODEL_KEYS) that `new` changes over `old`, as
+    {"model.key": (old, new)}."""
+    return {f"model.{key}": (getattr(old.model, key), getattr(new.model, key)) for key in REFIT_MODEL_KEYS
+            if getattr(old.model, key) != getattr(new.model, key)}
+
+
+def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: TrajectoryModel
+                ) -> tuple[dict[str, Any], bool]:
+    """The training state `state` (read from `path`) made to fit `config`'s settings of the stage after the flow
+    (REFIT_MODEL_KEYS) and `model`, built from `config`: its fitted temperature (a buffer, in the weights and the
+    best weights) as `model` has it, unfitted; a state past the stage "temperature" taken back to its start, the
+    stage's log rows and record left out, or, with the grid emptied, to the end of the stages. The state carries
+    `config`'s values of those settings. Returns it and whether a finished run must be finished anew (it went
+    back, or it has a stage left now);
+    a state whose config matches `config` there is returned as it is."""
+    trained = state_config(path, state)
+    if not refit_change(trained, config):
+        return state, False
+    buffer = model.state_dict().get("fitted_temperature")
+
+    def aligned(weights: Any) -> Any:
+        if not isinstance(weights, dict):
+            return weights  # check_state refuses it, naming the file
+        kept = {name: tensor for name, tensor in weights.items() if name != "fitted_temperature"}
+        return kept if buffer is None else {**kept, "fitted_temperature": torch.full_like(buffer, math.nan)}
+
+    old_stages = type(model).stages_for(trained.model)
+    reached = int(state["stage_index"]) if isinstance(state.get("stage_index"), int) else 0
+    went_back = FlowModel.TEMPERATURE in old_stages and reached > old_stages.index(FlowModel.TEMPERATURE)
+    carried = replace(trained, model=replace(trained.model, **{key: getattr(config.model, key)
+                                                               for key in REFIT_MODEL_KEYS}))
+    state = {**state, "config": carried.to_json(), "weights": aligned(state.get("weights")),
+             "best_weights": aligned(state.get("best_weights"))}
+    if went_back:
+        state.update(stage_index=old_stages.index(FlowModel.TEMPERATURE),
+                     log=[row for row in state["log"] if row.get("stage") != FlowModel.TEMPERATURE],
+                     best={stage: record for stage, record in state["best"].items()
+                           if stage != FlowModel.TEMPERATURE})
+    # a run that had done all its stages and now has one left (or must write its final model without one)
+    redo = went_back or (reached >= len(old_stages) and int(state.get("stage_index", 0)) < len(model.stages))
+    return state, redo
+
+
+def finished_state(run_dir: Path) -> dict[str, Any]:
+    """The training state after the last stage of the finished run `run_dir` kept without its checkpoints (a
+    published model): its final model's weights, its log and run.json's records. What it lacks (optimizer, best
+    weights of a stage) no stage reads once the gradient stages are over, so it serves to refit the stage after the
+    flow (`refit_state`), and nothing that would train again."""
+    config = read_run_config(run_dir)
+    if config is None:
+        raise UsageError(f"{run_dir}: no {CONFIG_FILE} beside its final model")
+    model = load_model(run_dir / FINAL_DIR)
+    info = run_info(run_dir)
+    log_path = run_dir / LOG_FILE
+    if not log_path.is_file():
+        raise UsageError(f"{run_dir}: a final model without its training log ({LOG_FILE})")
+    log = _log_rows(log_path)
+    return {"model": model.name, "config": config.to_json(), "stage_index": len(model.stages), "epoch": 0,
+            "best_val": math.inf, "best_epoch": 0, "bad_epochs": 0,
+            "weights": {name: tensor.detach().clone() for name, tensor in model.state_dict().items()},
+            "best_weights": None, "selected_nll": math.inf, "selected_epoch": 0, "optimizer": None,
+            "scheduler": None, "log": log.to_dicts(), "best": dict(info.get("best") or {}),
+            "skipped_total": int(log.get_column("skipped_steps").sum()), "started": str(info.get("started", "")),
+            "code_revisions": info.get("code_revisions"), "machines": info.get("machines")}
+
+
+def _log_rows(log_path: Path) -> pl.DataFrame:
+    """A run's training log with LOG_SCHEMA's columns (val_nll, absent from older logs, as nulls)."""
+    log = input_files.read_parquet(log_path)
+    missing = sorted(set(LOG_SCHEMA) - set(log.columns) - {"val_nll"})
+    if missing:
+        raise DataError(f"not a training log: no column {missing[0]!r}", log_path)
+    if "val_nll" not in log.columns:
+        log = log.with_columns(val_nll=pl.lit(None, dtype=pl.Float64))
+    return log.select(list(LOG_SCHEMA)).cast(LOG_SCHEMA)
 
 
 def raise_blocker(run_dir: Path, overrides: Sequence[str]) -> str | None:
@@ -129,15 +215,26 @@ class Resumption:
 
 def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dict[str, Any],
                   say: Callable[[str], None]) -> Resumption:
-    """Reconcile the checkpoint `state` with the run's `config` when their epoch budgets differ.
+    """Reconcile the checkpoint `state` (as read, unchecked) with the run's `config` when their epoch budgets or
+    the settings of the stage after the flow differ.
 
     A config that raises the budgets of the checkpoint's moves the run to them (`_reopen`). A checkpoint that
-    raises the config's is an earlier raise whose config.toml was not yet written: the run goes on with it.
-    Any other difference is an error."""
+    raises the config's is an earlier raise whose config.toml was not yet written: the run goes on with it. Other
+    settings of the stage after the flow make the state fit them (`refit_state`); a run past that stage goes back
+    to its start and is finished anew. Any other difference is an error."""
+    changes = refit_change(state_config(run_dir / STATE_FILE, state), config)
+    state, refitted = refit_state(run_dir / STATE_FILE, state, config, model)
+    check_state(run_dir / STATE_FILE, state, model)
+    if changes:
+        listed = ", ".join(f"{key} {old} -> {new}" for key, (old, new) in changes.items())
+        say(f"{listed}: " + ("the stage after the flow is fitted again on the final flow" if refitted
+                             else "taken for the stage after the flow"))
     trained = state_config(run_dir / STATE_FILE, state)
     trained = replace(trained, train=trained.train.with_execution_of(config.train))
     if trained == config:
-        return Resumption(config, state)
+        if changes and not refitted and int(state["stage_index"]) >= len(model.stages) and is_trained(run_dir):
+            return Resumption(config, state, finished=True)  # nothing to fit: the new values are only recorded
+        return Resumption(config, state, reopened=refitted, save=bool(changes))
     if budget_raise(config, trained):
         say("continuing the larger budget an interrupted call gave this run")
         return Resumption(trained, state, save=True)
@@ -145,9 +242,9 @@ def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, stat
         raise TrajflowError(f"{run_dir / STATE_FILE}: checkpoint does not match {CONFIG_FILE}")
     start, reopened = _reopen(run_dir, config, model, state, trained, say)
     start = {**start, "config": config.to_json()}
-    if not reopened and int(start["stage_index"]) >= len(model.stages) and is_trained(run_dir):
+    if not (reopened or refitted) and int(start["stage_index"]) >= len(model.stages) and is_trained(run_dir):
         return Resumption(config, start, finished=True)
-    return Resumption(config, start, reopened=reopened, save=True)
+    return Resumption(config, start, reopened=reopened or refitted, save=True)
 
 
 def _reopen(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dict[str, Any], trained: RunConfig,
@@ -175,7 +272,8 @@ def _reopen(run_dir: Path, config: RunConfig, model: TrajectoryModel, state: dic
             raise UsageError(f"{run_dir}: its {stage} stage finished before trajflow kept stage-end states "
                              f"({end_path.name} is missing), so it cannot continue with {change}; train into a "
                              f"new directory")
-        end = read_state(end_path, model)
+        end, _ = refit_state(end_path, load_training_state(end_path, expected_model=model.name), config, model)
+        check_state(end_path, end, model)
         progress = progress_from(end)
         if progress.epoch >= new.max_epochs or should_stop(progress, new.min_epochs, new.patience):
             say(f"{stage} would have stopped at its last epoch ({epochs}) with {change} too: nothing changes there")
@@ -294,13 +392,7 @@ def _state_from_final(source: Path) -> dict[str, Any]:
     if not log_path.is_file() or not isinstance(best, dict) or not {"epoch", "val_loss"} <= set(best):
         raise UsageError(f"{source}: a final model without its training log or run.json's best autoencoder epoch; "
                          "its autoencoder stage cannot be taken")
-    log = input_files.read_parquet(log_path)
-    missing = sorted(set(LOG_SCHEMA) - set(log.columns) - {"val_nll"})  # val_nll: absent from older logs
-    if missing:
-        raise DataError(f"not a training log: no column {missing[0]!r}", log_path)
-    if "val_nll" not in log.columns:
-        log = log.with_columns(val_nll=pl.lit(None, dtype=pl.Float64))
-    log = log.select(list(LOG_SCHEMA)).cast(LOG_SCHEMA).filter(pl.col("stage") == "autoencoder")
+    log = _log_rows(log_path).filter(pl.col("stage") == "autoencoder")
     epochs, best_epoch = log.height, int(best["epoch"])
     weights = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
     return {"model": model.name, "config": config.to_json(), "stage_index": 0, "epoch": epochs,

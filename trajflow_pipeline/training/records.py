@@ -81,6 +81,10 @@ class RunRecords:
         self.log.append({"epoch": epoch, "stage": stage, "train_loss": float(train_loss), "val_loss": float(val_loss),
                          "lr": float(lr), "seconds": float(seconds), "skipped_steps": int(skipped),
                          "samples_per_s": float(rate), "val_nll": None if math.isnan(val_nll) else float(val_nll)})
+        self._write_log()
+
+    def _write_log(self) -> None:
+        """Write the training log as it stands (train_log.parquet)."""
         if self.writer:
             frame = pl.DataFrame(self.log, schema=LOG_SCHEMA)
             buffer = io.BytesIO()

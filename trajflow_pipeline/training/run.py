@@ -16,7 +16,7 @@ from ..util.provenance import code_revision
 from .data import load_data
 from .distributed import DistContext
 from .loop import Session
-from .policy import (RAISABLE, autoencoder_start, budget_raise, check_same_data, first_difference, resume_fold,
+from .policy import (CHANGEABLE, autoencoder_start, budget_raise, check_same_data, first_difference, resume_fold,
                      source_record, started_from)
 
 
@@ -63,7 +63,8 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
 def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Sequence[str], model: str | None,
                     seed: int | None, device: str | None, resume: bool) -> tuple[RunConfig, RunConfig | None]:
     """The run's config and, when a resume raises its epoch budgets, the config it was trained with so far (else
-    None). On resume the saved config is used; changes other than raised budgets and the device are refused."""
+    None). On resume the saved config is used; changes other than raised budgets, the settings of the stage after
+    the flow (`policy.REFIT_MODEL_KEYS`) and the device are refused."""
     if model is not None and model not in MODEL_NAMES:
         raise UsageError(f"unknown model {model!r}; choose one of {', '.join(MODEL_NAMES)}")
     if resume and not run_dir.is_dir():
@@ -80,8 +81,7 @@ def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Se
         if raised is None:
             key = first_difference(saved, requested)
             raise UsageError(f"{run_dir} was started with a different configuration ({key}); resume it without "
-                             f"changing options (only {RAISABLE} may be raised), "
-                             f"or train into a new directory")
+                             f"changing options (only {CHANGEABLE}), or train into a new directory")
         return _with_options(requested, None, None, device), saved
     recover(run_dir / CONFIG_FILE)  # what a run killed at its start left (a temporary config.toml) is no run
     if not resume and run_dir.exists() and any(run_dir.iterdir()):
