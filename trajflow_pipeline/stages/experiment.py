@@ -63,8 +63,8 @@ from ..model.models import MODEL_CLASSES
 from ..rundir import (CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity, is_evaluated, is_trained,
                       read_run_config, read_run_info)
 from ..schemas import data_mismatch, open_dataset
-from ..training import (BUDGET_KEYS, REFIT_MODEL_KEYS, budget_raise, budget_size, first_difference, raise_blocker,
-                        refit_change)
+from ..training import (BUDGET_KEYS, REFIT_MODEL_KEYS, budget_raise, budget_size, describe_refit, first_difference,
+                        raise_blocker, refit_change)
 from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
@@ -235,9 +235,8 @@ def _check_budgets_only(out: Path, config: ExperimentConfig, quiet: bool) -> Non
             + "): runs the larger budget would not have stopped where the old one did continue from their last "
               "epoch and are evaluated again")
     if refits and not quiet:
-        say("the stage after the flow changed (" + ", ".join(f"{key} {old} -> {new}" for key, (old, new)
-                                                             in refits.items())
-            + "): finished runs fit it again on their final flow and are evaluated again")
+        say(f"the stage after the flow changed ({describe_refit(refits)}): finished runs fit it again on their final "
+            "flow and are evaluated again")
 
 
 def run_overrides(config: ExperimentConfig, model: str, run_dir: Path | None = None) -> list[str]:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.checkpoint import MODEL_FILE, load_model, load_training_state
-from ..model.config import EXECUTION_KEYS, RunConfig, load_config
+from ..model.config import EXECUTION_KEYS, RunConfig, load_config, toml_value
 from ..model.models import FlowModel, TrajectoryModel, build_model
 from ..rundir import (CONFIG_FILE, FINAL_DIR, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained,
                       read_run_config, read_run_info)
@@ -85,6 +85,11 @@ def refit_change(old: RunConfig, new: RunConfig) -> dict[str, tuple[Any, Any]]:
             if getattr(old.model, key) != getattr(new.model, key)}
 
 
+def describe_refit(changes: dict[str, tuple[Any, Any]]) -> str:
+    """`refit_change`'s changes for a message, values as a config file writes them."""
+    return ", ".join(f"{key} {toml_value(old)} -> {toml_value(new)}" for key, (old, new) in changes.items())
+
+
 def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: TrajectoryModel
                 ) -> tuple[dict[str, Any], bool]:
     """The training state `state` (read from `path`) made to fit `config`'s settings of the stage after the flow
@@ -92,8 +97,7 @@ def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: Tra
     best weights) as `model` has it, unfitted; a state past the stage "temperature" taken back to its start, the
     stage's log rows and record left out, or, with the grid emptied, to the end of the stages. The state carries
     `config`'s values of those settings. Returns it and whether a finished run must be finished anew (it went
-    back, or it has a stage left now);
-    a state whose config matches `config` there is returned as it is."""
+    back, or it has a stage left now); a state whose config matches `config` there is returned as it is."""
     trained = state_config(path, state)
     if not refit_change(trained, config):
         return state, False
@@ -112,9 +116,10 @@ def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: Tra
                                                                for key in REFIT_MODEL_KEYS}))
     state = {**state, "config": carried.to_json(), "weights": aligned(state.get("weights")),
              "best_weights": aligned(state.get("best_weights"))}
-    if went_back:
+    if went_back and isinstance(state.get("log"), list) and isinstance(state.get("best"), dict):
         state.update(stage_index=old_stages.index(FlowModel.TEMPERATURE),
-                     log=[row for row in state["log"] if row.get("stage") != FlowModel.TEMPERATURE],
+                     log=[row for row in state["log"]
+                          if not isinstance(row, dict) or row.get("stage") != FlowModel.TEMPERATURE],
                      best={stage: record for stage, record in state["best"].items()
                            if stage != FlowModel.TEMPERATURE})
     # a run that had done all its stages and now has one left (or must write its final model without one)
@@ -226,9 +231,8 @@ def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, stat
     state, refitted = refit_state(run_dir / STATE_FILE, state, config, model)
     check_state(run_dir / STATE_FILE, state, model)
     if changes:
-        listed = ", ".join(f"{key} {old} -> {new}" for key, (old, new) in changes.items())
-        say(f"{listed}: " + ("the stage after the flow is fitted again on the final flow" if refitted
-                             else "taken for the stage after the flow"))
+        what = "the stage after the flow is fitted again on the final flow" if refitted else "kept for a later stage"
+        say(f"{describe_refit(changes)}: {what}")
     trained = state_config(run_dir / STATE_FILE, state)
     trained = replace(trained, train=trained.train.with_execution_of(config.train))
     if trained == config:

@@ -168,7 +168,7 @@ class RunRecords:
 
 def _kept_by(best: dict[str, Any]) -> str:
     """What a stage's kept weights were chosen by, for the summary line: "val 0.1234", "val_nll -41.2000" or, for
-    the stage "temperature", "temperature 1.2, val_nll -24.5800"."""
+    the stage "temperature", "T = 1.2, val_nll -24.5800"."""
     if "temperature" in best:
-        return f"temperature {best['temperature']:g}, val_nll {best['val_nll']:.4f}"
+        return f"T = {best['temperature']:g}, val_nll {best['val_nll']:.4f}"
     return f"val_nll {best['val_nll']:.4f}" if "val_nll" in best else f"val {best['val_loss']:.4f}"
