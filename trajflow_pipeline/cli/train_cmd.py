@@ -35,7 +35,9 @@ def train_command(
                                                           "train.flow_max_epochs=N, train.flow_patience=N (or "
                                                           "the ae_ ones) above the run's, a stage the larger "
                                                           "budget would not have stopped continues from its last "
-                                                          "epoch (finished runs too).")]
+                                                          "epoch (finished runs too); with --set "
+                                                          "model.flow_temperature_grid=[...], a finished run fits "
+                                                          "its temperature stage again on its final flow.")]
     = False,
     autoencoder_from: Annotated[Optional[Path], typer.Option(
         "--autoencoder-from", metavar="RUN",
