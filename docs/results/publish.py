@@ -6,7 +6,9 @@ work.
     python docs/results/publish.py --every 15 runs/paper/eth_ucy docs/results/eth_ucy &
     python docs/results/publish.py --restore docs/results/eth_ucy runs/paper/eth_ucy
 
-Publishing runs `trajflow report EXP -o OUT` (once a run is finished), then writes beside the report:
+Publishing runs `trajflow report EXP -o OUT` (once a run is finished, and again only when the finished runs or
+their evaluations changed: a restored experiment's runs have no draws, and a new report would lose the figures
+drawn from them), then writes beside the report:
 - `config.toml`: the experiment's config, as the experiment saved it (and `config_set.json`, its `--set`
   overrides, where it ran with some);
 - `experiment.json`: the experiment's index (its plan and finished runs), as the experiment wrote it;
@@ -59,8 +61,8 @@ import polars as pl
 from trajflow_pipeline.errors import TrajflowError
 from trajflow_pipeline.report.collect import report_rows
 from trajflow_pipeline.model.checkpoint import load_training_state
-from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVALUATION_RECORD, LOG_FILE, METRICS_FILE, STAGE_END_FILE,
-                                      STATE_FILE, continuation_files)
+from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, EVALUATION_RECORD, LOG_FILE, METRICS_FILE,
+                                      STAGE_END_FILE, STATE_FILE, continuation_files)
 from trajflow_pipeline.stages.experiment import INDEX_FILE
 from trajflow_pipeline.stages.experiment_config import SAVED_OVERRIDES
 from trajflow_pipeline.stages.report import report
@@ -155,11 +157,27 @@ def publish_runs(experiment: Path, out: Path, limit: int = MAX_FILE_BYTES
     return finished, unfinished, notes
 
 
+def report_current(experiment: Path, out: Path, runs: Sequence[str]) -> bool:
+    """Whether `out` already holds the report of exactly the finished `runs` of `experiment` as they are evaluated
+    now: its report.md, an index listing the same runs, and each run's published evaluation record the same as the
+    run's own. Writing it again would change only its date, and after a restore (runs without their draws) would
+    drop the figures drawn from draws."""
+    if not (out / "report.md").is_file() or not (out / INDEX_FILE).is_file():
+        return False
+    if json.loads(input_files.read_text(out / INDEX_FILE)).get("runs") != list(runs):
+        return False
+    record = f"{EVAL_DIR}/{EVAL_FILE}"
+    return all((out / MODELS_DIR / Path(run).name / record).is_file()
+               and (out / MODELS_DIR / Path(run).name / record).read_bytes() == (experiment / run / record).read_bytes()
+               for run in runs)
+
+
 def publish(experiment: Path, out: Path, limit: int = MAX_FILE_BYTES) -> str:
     """Publish the experiment in `experiment` into `out` (see the module docstring); a one-line summary."""
     index = json.loads(input_files.read_text(experiment / INDEX_FILE))
     rows = 0
-    if index["runs"]:
+    unchanged = bool(index["runs"]) and report_current(experiment, out, index["runs"])
+    if index["runs"] and not unchanged:
         report([experiment], out, quiet=True)
     out.mkdir(parents=True, exist_ok=True)
     if index["runs"]:
@@ -177,7 +195,8 @@ def publish(experiment: Path, out: Path, limit: int = MAX_FILE_BYTES) -> str:
     finished, unfinished, notes = publish_runs(experiment, out, limit)
     sizes = ", ".join(f"{name} {size:,}" + (f" ({notes[name]})" if name in notes else "")
                       for name, size in unfinished.items())
-    return (f"published {out}: " + ("report, " if index["runs"] else "no report (no run is finished), ")
+    made = "report (as it was: the same finished runs), " if unchanged else "report, "
+    return (f"published {out}: " + (made if index["runs"] else "no report (no run is finished), ")
             + f"config, index, {rows} aggregate metric rows, {len(finished)} finished runs "
             f"({sum(finished.values()):,} bytes), {len(unfinished)} unfinished runs ({sum(unfinished.values()):,} "
             f"bytes{': ' + sizes if unfinished else ''})")

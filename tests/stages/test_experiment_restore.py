@@ -302,3 +302,23 @@ def test_a_new_temperature_grid_refits_finished_runs_published_or_not_and_evalua
     assert ours.equals(theirs)
     assert json.loads((exp / flow_run / "run.json").read_text())["best"] == \
         json.loads((restored / flow_run / "run.json").read_text())["best"]
+
+
+def test_publishing_again_keeps_the_report_until_the_finished_runs_change(interrupted: tuple[Path, Path],
+                                                                          tmp_path: Path) -> None:
+    """A restored experiment published back into its folder keeps the report as it was, figures drawn from the
+    draws it no longer has included; once another run is finished, the report is made again."""
+    _, exp = interrupted
+    publish = load_publish()
+    results = tmp_path / "results"
+    publish.publish(exp, results)
+    before = {p.relative_to(results).as_posix(): p.read_bytes()
+              for p in [*results.glob("report.*"), *(results / "figures").iterdir()]}
+    assert any("min-ade-vs-k" in name for name in before)
+    fresh = tmp_path / "fresh"
+    publish.restore(results, fresh)
+    assert "report (as it was: the same finished runs)" in publish.publish(fresh, results)
+    assert {name: (results / name).read_bytes() for name in before} == before
+    run_experiment(fresh / "config.toml", fresh, quiet=True)  # the run in training finishes
+    line = publish.publish(fresh, results)
+    assert "report (as it was" not in line and "trajflow-no-ae-all-s0" in (results / "report.md").read_text()

@@ -206,6 +206,18 @@ def test_a_raised_budget_shows_until_the_run_follows_it(tmp_path: Path) -> None:
     assert named(experiment_status(out), "trajflow-eth-s0")[0].state == "budget raised"
 
 
+def test_a_new_temperature_grid_shows_on_the_flow_runs_it_changes(tmp_path: Path) -> None:
+    """The experiment's config adds model.flow_temperature_grid: the finished TrajFlow run shows it until it fits
+    the stage; the constant-velocity run, which has no such stage, stays done."""
+    grid = [*BUDGET, "model.flow_temperature_grid=[1.0, 1.2]"]
+    out = write_experiment(tmp_path / "exp", budget=grid)
+    write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1.0] * 8), evaluated=True)
+    write_run(out, "cv-eth-s0", status="finished", log=[("fit", 1, 0.5)], model="cv", evaluated=True)
+    flow, cv = named(experiment_status(out), "trajflow-eth-s0", "cv-eth-s0")
+    assert (flow.state, cv.state) == ("temperature changed", "done")
+    assert "temperature changed" in _cli_output(out)
+
+
 def test_cli_table_json_and_errors(tmp_path: Path) -> None:
     out = write_experiment(tmp_path / "exp")
     write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1, -2]), evaluated=True)

@@ -19,7 +19,8 @@ if TYPE_CHECKING:  # only for annotations: the CLI imports no stage before a com
 #: how each state is shown
 _STATE_STYLE = {"done": "green", "training": "bold cyan", "evaluating": "bold cyan", "continuing": "bold cyan",
                 "interrupted": "yellow", "training or interrupted": "yellow", "trained": "yellow",
-                "budget raised": "yellow", "planned": "dim", "unreadable": "bold red", "data changed": "yellow"}
+                "budget raised": "yellow", "temperature changed": "yellow", "planned": "dim", "unreadable": "bold red",
+                "data changed": "yellow"}
 #: how each data stage state (stages/data_stages.py) is shown
 _DATA_STYLE = {"reused": "green", "given": "green", "built": "green", "stale": "yellow", "missing": "yellow",
                "unknown": "bold red"}
@@ -115,7 +116,8 @@ def _progress_cells(run: RunStatus) -> list[str]:
     if progress is None:
         return [""] * 4
     epoch = f"{progress.stage}: {progress.epoch}" + (f"/{progress.max_epochs}" if progress.max_epochs else "")
-    training = run.state in ("training", "interrupted", "training or interrupted", "budget raised", "continuing")
+    training = run.state in ("training", "interrupted", "training or interrupted", "budget raised",
+                             "temperature changed", "continuing")
     best = progress.kept_epoch if not training and progress.kept_epoch is not None else progress.best_epoch
     best_text = "" if best is None else str(best)
     if training and progress.patience_left is not None:

@@ -64,7 +64,7 @@ from ..rundir import (CONFIG_FILE, EVAL_DIR, METRICS_FILE, final_model_identity,
                       read_run_config, read_run_info)
 from ..schemas import data_mismatch, open_dataset
 from ..training import (BUDGET_KEYS, REFIT_MODEL_KEYS, budget_raise, budget_size, describe_refit, first_difference,
-                        raise_blocker, refit_change)
+                        raise_blocker, refit_change, refit_matters)
 from ..util import input_files
 from ..util.atomic import atomic_file, atomic_write_text
 from ..util.claim import claim, claims_supported
@@ -229,7 +229,8 @@ def _check_budgets_only(out: Path, config: ExperimentConfig, quiet: bool) -> Non
         if change is None:
             raise different(f"{model}: {first_difference(before, after)}")
         raised.update(change)
-        refits.update(refit_change(before, after))
+        if refit_matters(before, after):
+            refits.update(refit_change(before, after))
     if raised and not quiet:
         say("epoch budgets raised (" + ", ".join(f"train.{key} {old} -> {new}" for key, (old, new) in raised.items())
             + "): runs the larger budget would not have stopped where the old one did continue from their last "
@@ -286,12 +287,16 @@ def plan_order(models: list[str], folds: list[str | None], seeds: list[int]) -> 
 
 
 def run_done(run_dir: Path, overrides: list[str], data: Path | None = None) -> bool:
-    """Finished (see `rundir.is_evaluated`) with the config the experiment now gives it (its budgets were not raised)
-    and, when `data` is given, on that dataset as it is now."""
+    """Finished (see `rundir.is_evaluated`) with the config the experiment now gives it (its budgets were not raised,
+    its stage after the flow not changed where it has one) and, when `data` is given, on that dataset as it is
+    now."""
     if not is_evaluated(run_dir) or (data is not None and trained_on_other_data(run_dir, data)):
         return False
     saved = read_run_config(run_dir)
-    return saved is None or load_config(overrides=overrides, base=saved) == saved
+    if saved is None:
+        return True
+    requested = load_config(overrides=overrides, base=saved)
+    return requested == saved or (budget_raise(saved, requested) == {} and not refit_matters(saved, requested))
 
 
 def trained_on_other_data(run_dir: Path, data: Path) -> str | None:

@@ -34,6 +34,7 @@ from ..metrics.rome_cache import saved_fits
 from ..model.models import MODEL_CLASSES
 from ..rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, LOG_FILE, METRICS_FILE, ROME_CACHE_DIR, RUN_FILE,
                       is_evaluated, read_run_config, read_run_info)
+from ..training import budget_raise
 from ..util import input_files
 from .data_stages import StageState, data_status
 from .experiment import plan_order, run_done, run_name, run_overrides, trained_on_other_data
@@ -100,7 +101,7 @@ class RunStatus:
     fold: str | None
     seed: int
     #: planned, training, interrupted, training or interrupted, evaluating, trained, continuing, budget raised,
-    #: data changed (trained on data a data stage has changed since: it is trained again), done, or unreadable
+    #: temperature changed (the experiment's settings of the stage after the flow: it is fitted again), data changed (trained on data a data stage has changed since: it is trained again), done, or unreadable
     #: (see `problem`)
     state: str
     #: claimed by a live process now (None: cannot tell from here, see the module docstring)
@@ -336,7 +337,8 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
     elif not is_evaluated(run_dir):
         state = "evaluating" if busy else "trained"
     elif not run_done(run_dir, overrides):
-        state = "continuing" if busy else "budget raised"
+        state = "continuing" if busy else ("budget raised" if _budget_raised(run_dir, overrides) else
+                                           "temperature changed")
     else:
         state = "done"
     log = _read_log(run_dir / LOG_FILE)
@@ -361,6 +363,13 @@ def _inspect_run(run_dir: Path, config: ExperimentConfig | None, model: str, fol
         metrics=_aggregates(run_dir) if state == "done" else {},
         fits_saved=saved_fits(run_dir / ROME_CACHE_DIR) if state in ("trained", "evaluating") else None,
     )
+
+
+def _budget_raised(run_dir: Path, overrides: list[str]) -> bool:
+    """Whether the experiment's config raises the epoch budgets of the finished run in `run_dir` (else what it
+    changes is the stage after the flow)."""
+    saved = read_run_config(run_dir)
+    return saved is not None and bool(budget_raise(saved, load_config(overrides=overrides, base=saved)))
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:

@@ -16,7 +16,7 @@ from torch import Tensor
 from ..errors import DataError, TrajflowError, UsageError
 from ..model.checkpoint import MODEL_FILE, load_model, load_training_state
 from ..model.config import EXECUTION_KEYS, RunConfig, load_config, toml_value
-from ..model.models import FlowModel, TrajectoryModel, build_model
+from ..model.models import MODEL_CLASSES, FlowModel, TrajectoryModel, build_model
 from ..rundir import (CONFIG_FILE, FINAL_DIR, LOG_FILE, RUN_REQUIRED, STAGE_END_FILE, STATE_FILE, is_trained,
                       read_run_config, read_run_info)
 from ..schemas import data_mismatch
@@ -83,6 +83,14 @@ def refit_change(old: RunConfig, new: RunConfig) -> dict[str, tuple[Any, Any]]:
     {"model.key": (old, new)}."""
     return {f"model.{key}": (getattr(old.model, key), getattr(new.model, key)) for key in REFIT_MODEL_KEYS
             if getattr(old.model, key) != getattr(new.model, key)}
+
+
+def refit_matters(old: RunConfig, new: RunConfig) -> bool:
+    """Whether `new`'s settings of the stage after the flow change what a run of `old` ends with: they differ and
+    the model has that stage under one of them (a grid for a model without it, or a new problem count with no
+    grid either way, changes nothing)."""
+    stages_for = MODEL_CLASSES[new.model.name].stages_for
+    return bool(refit_change(old, new)) and FlowModel.TEMPERATURE in (*stages_for(old.model), *stages_for(new.model))
 
 
 def describe_refit(changes: dict[str, tuple[Any, Any]]) -> str:
