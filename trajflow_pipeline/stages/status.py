@@ -101,7 +101,8 @@ class RunStatus:
     fold: str | None
     seed: int
     #: planned, training, interrupted, training or interrupted, evaluating, trained, continuing, budget raised,
-    #: temperature changed (the experiment's settings of the stage after the flow: it is fitted again), data changed (trained on data a data stage has changed since: it is trained again), done, or unreadable
+    #: temperature changed (the experiment changed the settings of the stage after the flow: it is fitted again),
+    #: data changed (trained on data a data stage has changed since: it is trained again), done, or unreadable
     #: (see `problem`)
     state: str
     #: claimed by a live process now (None: cannot tell from here, see the module docstring)

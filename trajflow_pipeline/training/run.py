@@ -62,9 +62,10 @@ def train(dataset_dir: str | Path, run_dir: str | Path, *, fold: str | None = No
 
 def _resolve_config(run_dir: Path, config_path: str | Path | None, overrides: Sequence[str], model: str | None,
                     seed: int | None, device: str | None, resume: bool) -> tuple[RunConfig, RunConfig | None]:
-    """The run's config and, when a resume raises its epoch budgets, the config it was trained with so far (else
-    None). On resume the saved config is used; changes other than raised budgets, the settings of the stage after
-    the flow (`policy.REFIT_MODEL_KEYS`) and the device are refused."""
+    """The run's config and, when a resume changes it (raised epoch budgets, new settings of the stage after the
+    flow), the config it was trained with so far (else None). On resume the saved config is used; changes other
+    than raised budgets, the settings of the stage after the flow (`policy.REFIT_MODEL_KEYS`) and the device are
+    refused."""
     if model is not None and model not in MODEL_NAMES:
         raise UsageError(f"unknown model {model!r}; choose one of {', '.join(MODEL_NAMES)}")
     if resume and not run_dir.is_dir():
