@@ -24,7 +24,9 @@ drawn from them), then writes beside the report:
   for a run in training, or `final/` for one trained and not yet evaluated. Runs without a checkpoint yet (they
   would start again anyway) are left out. A last-epoch state larger than the largest file this repository takes
   (`--max-file-mib`, 2 MiB: a state in the flow stage holds the weights, the best weights and Adam's two moments,
-  ~3.5 MB for ETH/UCY's TrajFlow) is replaced by the run's latest stage-end state that fits
+  ~3.5 MB for ETH/UCY's TrajFlow) is published in two files, `checkpoints/state.pt` without the optimizer's state
+  and `checkpoints/state-optimizer.pt` with it, which `--restore` joins again (a resume of the first alone is
+  refused). Where even those are too large, the run's latest stage-end state that fits takes its place
   (`checkpoints/end-<stage>.pt`, saved as `checkpoints/state.pt`, with the training log cut to its epochs): the
   copy resumes at the end of that stage, bit-identical to the run there, and trains the later stages again. When
   no state fits, the last one is published all the same and the summary line says it is over the limit.
@@ -57,12 +59,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import polars as pl
+import torch
 
 from trajflow_pipeline.errors import TrajflowError
+from trajflow_pipeline.model.checkpoint import load_training_state, save_training_state
 from trajflow_pipeline.report.collect import report_rows
-from trajflow_pipeline.model.checkpoint import load_training_state
-from trajflow_pipeline.rundir import (CONFIG_FILE, EVAL_DIR, EVAL_FILE, EVALUATION_RECORD, LOG_FILE, METRICS_FILE,
-                                      STAGE_END_FILE, STATE_FILE, continuation_files)
+from trajflow_pipeline.rundir import (CHECKPOINT_DIR, CONFIG_FILE, EVAL_DIR, EVAL_FILE, EVALUATION_RECORD, LOG_FILE,
+                                      METRICS_FILE, STAGE_END_FILE, STATE_FILE, continuation_files)
 from trajflow_pipeline.stages.experiment import INDEX_FILE
 from trajflow_pipeline.stages.experiment_config import SAVED_OVERRIDES
 from trajflow_pipeline.stages.report import report
@@ -79,6 +82,8 @@ RUNS_DIR = "runs"
 RUN_METRICS = f"{EVAL_DIR}/{METRICS_FILE}"
 #: the largest file this repository takes, in bytes (--max-file-mib)
 MAX_FILE_BYTES = 2 * 1024 * 1024
+#: a published resume state too large for one file keeps its optimizer's state (Adam's moments) here
+OPTIMIZER_PART = f"{CHECKPOINT_DIR}/state-optimizer.pt"
 
 
 def copy_run(run: Path, target: Path, names: Sequence[str]) -> int:
@@ -105,11 +110,45 @@ def resume_state_within(run: Path, limit: int) -> Path | None:
     return max(ends, key=trained.__getitem__, default=None)
 
 
+def write_state_apart(state_path: Path, target: Path, limit: int) -> bool:
+    """Write the training state in `state_path` into the copy `target` as two files of at most `limit` bytes each:
+    `checkpoints/state.pt` without the optimizer's state (in its place a marker that any resume refuses) and
+    OPTIMIZER_PART with it; :func:`join_state` puts them back together, tensor for tensor. False, and nothing
+    left behind, when either part is larger."""
+    state = load_training_state(state_path)
+    head, part = target / STATE_FILE, target / OPTIMIZER_PART
+    head.parent.mkdir(parents=True, exist_ok=True)
+    save_training_state(head, {**state, "optimizer": {"published_apart": OPTIMIZER_PART}})
+    torch.save({"optimizer": state["optimizer"]}, part)
+    if head.stat().st_size <= limit and part.stat().st_size <= limit:
+        return True
+    head.unlink()
+    part.unlink()
+    return False
+
+
+def join_state(run: Path) -> None:
+    """Put a state that was published in two files (:func:`write_state_apart`) back into the run's one state.pt."""
+    state = load_training_state(run / STATE_FILE)
+    try:
+        part = torch.load(run / OPTIMIZER_PART, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - any failure to parse means a damaged or foreign file
+        raise ValueError(f"{run / OPTIMIZER_PART}: not a readable optimizer state ({error})") from None
+    save_training_state(run / STATE_FILE, {**state, "optimizer": part["optimizer"]})
+    (run / OPTIMIZER_PART).unlink()
+
+
 def copy_run_in_training(run: Path, target: Path, names: Sequence[str], limit: int) -> tuple[int, str]:
-    """Copy what continues the run in training `run` into the new directory `target`, its resume state at most
-    `limit` bytes where the run has one that small (:func:`resume_state_within`): a stage-end state goes in as the
-    copy's state.pt with the training log cut to the epochs it holds. Returns the bytes written and what was
-    left out ("" when nothing was)."""
+    """Copy what continues the run in training `run` into the new directory `target`, each file at most `limit`
+    bytes where it can be: the last epoch's state as it is or in two files (:func:`write_state_apart`), else the
+    end state of the latest finished stage that fits (:func:`resume_state_within`) as the copy's state.pt, with the
+    training log cut to the epochs it holds. Returns the bytes written and what was left out ("" when nothing
+    was)."""
+    if (run / STATE_FILE).stat().st_size > limit:
+        copy_run(run, target, [name for name in names if name != STATE_FILE])
+        if write_state_apart(run / STATE_FILE, target, limit):
+            return sum(path.stat().st_size for path in target.rglob("*") if path.is_file()), ""
+        shutil.rmtree(target)
     state = resume_state_within(run, limit)
     if state is None:
         size = (run / STATE_FILE).stat().st_size
@@ -222,6 +261,8 @@ def restore(results: Path, experiment: Path) -> str:
             shutil.copy2(results / SAVED_OVERRIDES, staging / SAVED_OVERRIDES)
         for run in runs:
             shutil.copytree(run, staging / RUNS_DIR / run.name)
+            if (run / OPTIMIZER_PART).is_file():
+                join_state(staging / RUNS_DIR / run.name)
         if index is not None:
             shutil.copy2(results / INDEX_FILE, staging / INDEX_FILE)
             if index["runs"]:

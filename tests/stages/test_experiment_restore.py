@@ -15,10 +15,14 @@ import torch
 
 from test_eval_stage import write_tiny_experiment
 
-from trajflow_pipeline.errors import UsageError
+from trajflow_pipeline.errors import TrajflowError, UsageError
+from trajflow_pipeline.model import load_training_state
+from trajflow_pipeline.model.config import DataSpec, load_config
+from trajflow_pipeline.model.models import build_model
 from trajflow_pipeline.rundir import continuation_files, is_evaluated
 from trajflow_pipeline.stages.experiment import run_experiment
 from trajflow_pipeline.stages.report import report
+from trajflow_pipeline.training import check_state
 from trajflow_pipeline.training import loop as train_loop
 
 PUBLISH = Path(__file__).resolve().parents[2] / "docs" / "results" / "publish.py"
@@ -228,11 +232,12 @@ def test_an_experiment_killed_in_its_first_run_can_be_published(tmp_path: Path,
     assert sorted(p.name for p in (results / "unfinished").iterdir()) == ["trajflow-no-ae-all-s0"]
 
 
-def test_a_resume_state_over_the_file_limit_is_published_as_its_last_stage_end_state(
+def test_a_resume_state_over_the_file_limit_is_published_in_two_files_or_as_its_last_stage_end_state(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A run killed in its flow stage whose state is over the limit is published with its end-of-autoencoder state
-    and the log of those epochs; the restored copy trains its flow again as the run did (the same losses), and
-    a limit that no state fits publishes the last state and says so."""
+    """A run killed in its flow stage whose state is over the limit: published in two files (the state without the
+    optimizer's, and that) where both fit, which the restore joins and the copy resumes after its last epoch;
+    else with its end-of-autoencoder state and the log of those epochs, from which the copy trains its flow again
+    as the run did (the same losses); a limit that no state fits publishes the last state and says so."""
     config = write_tiny_experiment(tmp_path, ["trajflow"], [0])
 
     def hook(stage: str, epoch: int) -> None:
@@ -245,23 +250,43 @@ def test_a_resume_state_over_the_file_limit_is_published_as_its_last_stage_end_s
             run_experiment(config, tmp_path / "exp", quiet=True)
     run = tmp_path / "exp" / "runs" / "trajflow-all-s0"
     state, end = run / "checkpoints" / "state.pt", run / "checkpoints" / "end-autoencoder.pt"
-    assert state.stat().st_size > end.stat().st_size, "the premise: the flow-stage state is the larger one"
     original = pl.read_parquet(run / "train_log.parquet")
     assert original.get_column("stage").to_list()[-1] == "flow"
     publish = load_publish()
-    results = tmp_path / "results"
+    assert publish.write_state_apart(state, tmp_path / "parts", 10**9)
+    parts = [tmp_path / "parts" / "checkpoints" / name for name in ("state.pt", "state-optimizer.pt")]
+    apart = max(path.stat().st_size for path in parts)
+    assert apart < state.stat().st_size and end.stat().st_size < state.stat().st_size, "the premise of this test"
+    losses = ["epoch", "stage", "train_loss", "val_loss", "lr"]
+
+    results = tmp_path / "results-apart"
+    line = publish.publish(tmp_path / "exp", results, limit=apart)
+    assert "left out" not in line and "over the" not in line
+    copy = results / "unfinished" / "trajflow-all-s0"
+    assert sorted(p.relative_to(copy).as_posix() for p in copy.rglob("*") if p.is_file()) == [
+        "checkpoints/state-optimizer.pt", "checkpoints/state.pt", "config.toml", "run.json", "train_log.parquet"]
+    with pytest.raises(TrajflowError, match="optimizer state is damaged"):  # the first part alone resumes nothing
+        check_state(parts[0], load_training_state(parts[0]), build_model(
+            load_config(run / "config.toml").model, DataSpec(n_past=8, n_future=12)))
+    fresh = tmp_path / "elsewhere-apart"
+    publish.restore(results, fresh)
+    assert not (fresh / "runs" / "trajflow-all-s0" / "checkpoints" / "state-optimizer.pt").exists()
+    run_experiment(fresh / "config.toml", fresh, quiet=True)
+    resumed = pl.read_parquet(fresh / "runs" / "trajflow-all-s0" / "train_log.parquet")
+    assert resumed.head(original.height).equals(original), "an epoch before the kill was trained again"
+
+    results = tmp_path / "results"  # (here the autoencoder outweighs the flow: parts that do not fit are feigned)
+    monkeypatch.setattr(publish, "write_state_apart", lambda *args: False)
     line = publish.publish(tmp_path / "exp", results, limit=end.stat().st_size)
     assert "resumes from end-autoencoder.pt, 1 later epochs left out" in line
     cut = results / "unfinished" / "trajflow-all-s0"
     assert (cut / "checkpoints" / "state.pt").read_bytes() == end.read_bytes()
     published_log = pl.read_parquet(cut / "train_log.parquet")
     assert published_log.equals(original.filter(pl.col("stage") == "autoencoder"))
-
     fresh = tmp_path / "elsewhere"
     publish.restore(results, fresh)
     run_experiment(fresh / "config.toml", fresh, quiet=True)
     resumed = pl.read_parquet(fresh / "runs" / "trajflow-all-s0" / "train_log.parquet")
-    losses = ["epoch", "stage", "train_loss", "val_loss", "lr"]
     assert resumed.head(original.height).select(losses).equals(original.select(losses)), \
         "the flow epoch trained again differs from the run's own"
     assert is_evaluated(fresh / "runs" / "trajflow-all-s0")
