@@ -134,6 +134,8 @@ def join_state(run: Path) -> None:
         part = torch.load(run / OPTIMIZER_PART, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 - any failure to parse means a damaged or foreign file
         raise ValueError(f"{run / OPTIMIZER_PART}: not a readable optimizer state ({error})") from None
+    if not isinstance(part, dict) or not isinstance(part.get("optimizer"), dict):
+        raise ValueError(f"{run / OPTIMIZER_PART}: not an optimizer state published by this script")
     save_training_state(run / STATE_FILE, {**state, "optimizer": part["optimizer"]})
     (run / OPTIMIZER_PART).unlink()
 
@@ -147,7 +149,8 @@ def copy_run_in_training(run: Path, target: Path, names: Sequence[str], limit: i
     if (run / STATE_FILE).stat().st_size > limit:
         copy_run(run, target, [name for name in names if name != STATE_FILE])
         if write_state_apart(run / STATE_FILE, target, limit):
-            return sum(path.stat().st_size for path in target.rglob("*") if path.is_file()), ""
+            return (sum(path.stat().st_size for path in target.rglob("*") if path.is_file()),
+                    f"its state in two files, {STATE_FILE} and {OPTIMIZER_PART}")
         shutil.rmtree(target)
     state = resume_state_within(run, limit)
     if state is None:
@@ -206,9 +209,9 @@ def report_current(experiment: Path, out: Path, runs: Sequence[str]) -> bool:
     if json.loads(input_files.read_text(out / INDEX_FILE)).get("runs") != list(runs):
         return False
     record = f"{EVAL_DIR}/{EVAL_FILE}"
-    return all((out / MODELS_DIR / Path(run).name / record).is_file()
-               and (out / MODELS_DIR / Path(run).name / record).read_bytes() == (experiment / run / record).read_bytes()
-               for run in runs)
+    published = [out / MODELS_DIR / Path(run).name / record for run in runs]
+    return all(copy.is_file() and copy.read_bytes() == (experiment / run / record).read_bytes()
+               for copy, run in zip(published, runs))
 
 
 def publish(experiment: Path, out: Path, limit: int = MAX_FILE_BYTES) -> str:
@@ -310,8 +313,9 @@ def main() -> None:
     parser.add_argument("--every", type=float, metavar="MINUTES",
                         help="publish again every MINUTES minutes until every planned run is finished")
     parser.add_argument("--max-file-mib", type=float, default=MAX_FILE_BYTES / 2**20, metavar="MIB",
-                        help="the largest resume state to publish, in MiB (default: %(default)g); a larger one is "
-                             "replaced by the run's latest stage-end state that fits")
+                        help="the largest file to publish, in MiB (default: %(default)g); a larger resume state is "
+                             "published in two files, or else replaced by the run's latest stage-end state that "
+                             "fits")
     args = parser.parse_args()
     if args.every is not None and (args.restore or not args.every > 0):
         parser.error("--every takes a positive number of minutes, and does not go with --restore")
