@@ -682,6 +682,20 @@ def test_only_raised_budgets_may_change_on_resume(monkeypatch: pytest.MonkeyPatc
         train(data, run, resume=True, **budget_options(2, 4))
 
 
+def test_new_execution_settings_on_a_finished_run_are_recorded_and_train_nothing(monkeypatch: pytest.MonkeyPatch,
+                                                                                 tmp_path: Path) -> None:
+    """A finished run resumed with another train.compile_flow keeps its final model and its finish time (so
+    nothing evaluates it again) and records the setting."""
+    install_fake_data(monkeypatch, 64, 16)
+    data = tmp_path / "data"
+    run = train(data, tmp_path / "run", **budget_options(2, 2))
+    model, info = (run / "final" / "model.safetensors").read_bytes(), (run / "run.json").read_bytes()
+    options = budget_options(2, 2, "train.compile_flow=off")
+    train(data, run, resume=True, **options)
+    assert (run / "final" / "model.safetensors").read_bytes() == model and (run / "run.json").read_bytes() == info
+    assert load_config(run / "config.toml").train.compile_flow == "off"
+
+
 def test_a_raise_interrupted_while_saving_is_completed_by_the_next_resume(monkeypatch: pytest.MonkeyPatch,
                                                                           tmp_path: Path) -> None:
     """Killed after the raise saved run.json and the checkpoint but not config.toml: the run must not look

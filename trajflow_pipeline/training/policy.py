@@ -244,8 +244,9 @@ def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, stat
     trained = state_config(run_dir / STATE_FILE, state)
     trained = replace(trained, train=trained.train.with_execution_of(config.train))
     if trained == config:
-        if changes and not refitted and int(state["stage_index"]) >= len(model.stages) and is_trained(run_dir):
-            return Resumption(config, state, finished=True)  # nothing to fit: the new values are only recorded
+        if not refitted and int(state["stage_index"]) >= len(model.stages) and is_trained(run_dir):
+            # nothing left to train or fit (new execution settings, or a grid for no stage): only recorded
+            return Resumption(config, state, finished=True)
         return Resumption(config, state, reopened=refitted, save=bool(changes))
     if budget_raise(config, trained):
         say("continuing the larger budget an interrupted call gave this run")
