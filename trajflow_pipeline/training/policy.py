@@ -218,7 +218,7 @@ class Resumption:
     config: RunConfig
     #: the training state to go on from (when `finished`: to save as the run's state)
     state: dict[str, Any]
-    #: a finished stage was reopened by a raised budget
+    #: a finished stage was reopened by a raised budget, or the stage after the flow is to be fitted anew
     reopened: bool = False
     #: the state and the config must be saved before training goes on
     save: bool = False
@@ -239,7 +239,8 @@ def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, stat
     state, refitted = refit_state(run_dir / STATE_FILE, state, config, model)
     check_state(run_dir / STATE_FILE, state, model)
     if changes:
-        what = "the stage after the flow is fitted again on the final flow" if refitted else "kept for a later stage"
+        what = ("the stage after the flow is fitted again on the final flow" if refitted
+                else "recorded for the stage after the flow, which this run has not reached or does not have")
         say(f"{describe_refit(changes)}: {what}")
     trained = state_config(run_dir / STATE_FILE, state)
     trained = replace(trained, train=trained.train.with_execution_of(config.train))
