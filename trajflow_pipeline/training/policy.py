@@ -392,29 +392,23 @@ def autoencoder_start(source: Path, config: RunConfig, data: TrainingData, fold:
 
 
 def _state_from_final(source: Path) -> dict[str, Any]:
-    """The end-of-autoencoder training state of a finished run kept without its checkpoints: the autoencoder's
-    best weights from the final model (the flow stage never changes them), its epochs from the log, its best epoch
-    from run.json. What it lacks (the last epoch's weights, the optimizer) the stage, being over, never reads."""
-    config = read_run_config(source)
-    if config is None:
+    """The end-of-autoencoder training state of a finished run kept without its checkpoints: its state after the
+    last stage (:func:`finished_state`) taken back to the autoencoder's end, with the autoencoder's best weights
+    from the final model (the flow stage never changes them), its epochs from the log, its best epoch from
+    run.json. What it lacks (the last epoch's weights, the optimizer) the stage, being over, never reads."""
+    if read_run_config(source) is None:
         raise UsageError(f"{source}: no {CONFIG_FILE} beside its final model, so its autoencoder's settings are "
                          "unknown")
-    model = load_model(source / FINAL_DIR)
-    info = run_info(source)
-    best = (info.get("best") or {}).get("autoencoder")
-    log_path = source / LOG_FILE
-    if not log_path.is_file() or not isinstance(best, dict) or not {"epoch", "val_loss"} <= set(best):
+    best = (run_info(source).get("best") or {}).get("autoencoder")
+    if not (source / LOG_FILE).is_file() or not isinstance(best, dict) or not {"epoch", "val_loss"} <= set(best):
         raise UsageError(f"{source}: a final model without its training log or run.json's best autoencoder epoch; "
                          "its autoencoder stage cannot be taken")
-    log = _log_rows(log_path).filter(pl.col("stage") == "autoencoder")
-    epochs, best_epoch = log.height, int(best["epoch"])
-    weights = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
-    return {"model": model.name, "config": config.to_json(), "stage_index": 0, "epoch": epochs,
-            "best_val": float(best["val_loss"]), "best_epoch": best_epoch, "bad_epochs": epochs - best_epoch,
-            "weights": weights, "best_weights": weights, "selected_nll": math.inf, "selected_epoch": 0,
-            "optimizer": None, "scheduler": None, "log": log.to_dicts(), "best": {"autoencoder": best},
-            "skipped_total": int(log.get_column("skipped_steps").sum()), "started": str(info.get("started", "")),
-            "code_revisions": info.get("code_revisions"), "machines": info.get("machines")}
+    state = finished_state(source)
+    log = [row for row in state["log"] if row["stage"] == "autoencoder"]
+    epochs, best_epoch = len(log), int(best["epoch"])
+    return {**state, "stage_index": 0, "epoch": epochs, "best_val": float(best["val_loss"]),
+            "best_epoch": best_epoch, "bad_epochs": epochs - best_epoch, "best_weights": state["weights"],
+            "log": log, "best": {"autoencoder": best}, "skipped_total": sum(row["skipped_steps"] for row in log)}
 
 
 def _initial_weights(config: RunConfig, data: TrainingData) -> dict[str, Tensor]:
