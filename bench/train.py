@@ -5,6 +5,7 @@
     python bench/train.py --no-cpu             # CUDA only
     python bench/train.py --models trajflow --against ../release   # against an earlier release's worktree
     python bench/train.py --models trajflow --compile-flow         # flow stage compiled (train.compile_flow)
+    python bench/train.py --models trajflow --sampling-only --against ../release --rounds 4
 
 Training: samples/s of one optimisation step per stage (loss, backward, finiteness check, fused AdamW) at batch
 128 on ETH/UCY-shaped problems (8 past, 12 future steps) with up to 0, 8 and 24 neighbours (80% of them present).
@@ -55,6 +56,8 @@ def best_time(fn: Callable[[], object], repeats: int, inner: int, sync: Callable
 
 #: set by --compile-flow: the flow stage's steps run compiled (train.compile_flow = "on"), where the tree has it
 COMPILE_FLOW = False
+#: set by --sampling-only: the training figures are skipped
+SAMPLING_ONLY = False
 
 
 def freeze_all_but(model: torch.nn.Module, stage: str) -> list[torch.nn.Parameter]:
@@ -118,7 +121,8 @@ def figures(device: torch.device, models: list[str], repeats: int) -> dict[str, 
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     out: dict[str, list] = {}
     for name in models:
-        for stage in [s for s in build_model(ModelConfig(name=name), SPEC).stages if s != "fit"]:
+        for stage in [] if SAMPLING_ONLY else [s for s in build_model(ModelConfig(name=name), SPEC).stages
+                                               if s != "fit"]:
             for neighbours in (0, 8, 24):
                 wall, _ = training_rate(name, stage, neighbours, device, repeats, sync)
                 out[f"{name} {stage} {neighbours} neighbours, samples/s"] = [wall, "rate"]
@@ -133,7 +137,7 @@ def run(device: torch.device, models: list[str], repeats: int) -> None:
     print(f"{'model':16s} {'stage':12s} {'neighbours':>10s} {'samples/s':>12s} {'per CPU-s':>12s}")
     for name in models:
         stages = [s for s in build_model(ModelConfig(name=name), SPEC).stages if s != "fit"]
-        for stage in stages:
+        for stage in [] if SAMPLING_ONLY else stages:
             for neighbours in (0, 8, 24):
                 wall, cpu = training_rate(name, stage, neighbours, device, repeats, sync)
                 print(f"{name:16s} {stage:12s} {neighbours:>10d} {wall:>12,.0f} {cpu:>12,.0f}")
@@ -155,15 +159,17 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --against")
     parser.add_argument("--compile-flow", action="store_true",
                         help="flow-stage steps compiled, as train.compile_flow = \"on\" (trees without it: eager)")
+    parser.add_argument("--sampling-only", action="store_true", help="only the sampling figures")
     parser.add_argument("--figures-json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    global COMPILE_FLOW
-    COMPILE_FLOW = args.compile_flow
+    global COMPILE_FLOW, SAMPLING_ONLY
+    COMPILE_FLOW, SAMPLING_ONLY = args.compile_flow, args.sampling_only
     if args.against is not None:
         from side_by_side import report_side_by_side
 
         passed = ["--threads", str(args.threads[0]), "--repeats", str(args.repeats), "--models", *args.models,
-                  *(["--compile-flow"] if args.compile_flow else [])]
+                  *(["--compile-flow"] if args.compile_flow else []),
+                  *(["--sampling-only"] if args.sampling_only else [])]
         report_side_by_side(Path(__file__), passed, args.against, args.rounds)
         return
     tune_cpu_allocator()

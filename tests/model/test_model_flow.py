@@ -9,7 +9,7 @@ from zuko.flows.coupling import GeneralCouplingTransform
 from zuko.transforms import MonotonicRQSTransform
 
 from trajflow_pipeline.model import compiled as compiled_module
-from trajflow_pipeline.model.flow import ConditionalSplineFlow, SplineCoupling
+from trajflow_pipeline.model.flow import ConditionalSplineFlow, SplineCoupling, _elu_
 from trajflow_pipeline.model.spline import RationalQuadraticSpline, spline_inverse_columns
 
 
@@ -182,6 +182,16 @@ def test_sampling_on_columns_is_the_transform_inverse(standardize: bool) -> None
     x32, log_lik32 = flow.float().from_noise(z.float(), c.float())        # float32: float rounding only
     assert torch.allclose(x32.double(), x, rtol=1e-4, atol=1e-4) and torch.allclose(log_lik32.double(), log_lik,
                                                                                    rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("alpha", [1.0, 0.3])
+def test_sampling_elu_is_torch_elu(alpha: float) -> None:
+    """Sampling's in-place ELU (exp as exp2) is F.elu: to float64 rounding, and within 1e-7 in float32."""
+    x = torch.cat((torch.linspace(-40, 6, 100_001, dtype=torch.float64), torch.tensor([0.0, -0.0, -1e-30])))
+    assert torch.allclose(_elu_(x.clone(), alpha), torch.nn.functional.elu(x, alpha), rtol=0, atol=1e-15)
+    x32 = x.float()
+    assert (_elu_(x32.clone(), alpha).double() - torch.nn.functional.elu(x32.double(), alpha)).abs().max() < 1e-7
+    assert torch.isnan(_elu_(torch.tensor([float("nan")]), alpha)).all()
 
 
 def test_tempered_sampling_draws_and_scores_with_the_wider_base() -> None:

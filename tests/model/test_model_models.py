@@ -15,7 +15,7 @@ from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
 from trajflow_pipeline.model.encoders import (SocialGNN, compact_neighbours, pool_edges, pool_edges_to_compile,
                                              size_groups, social_nodes)
-from trajflow_pipeline.model.models import (FloMo, build_model, extend_constant_velocity, scale_scene,
+from trajflow_pipeline.model.models import (FloMo, build_model, extend_constant_velocity, sample_chunks, scale_scene,
                                              truncated_normal_scales)
 from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
@@ -346,6 +346,40 @@ def test_sampling_in_chunks_gives_the_same_bits(name: str, monkeypatch: pytest.M
     chunked = model.sample(batch, 6, steps=14, generator=torch.Generator().manual_seed(3))
     assert torch.allclose(whole.trajectories, chunked.trajectories, rtol=1e-5, atol=1e-5)
     assert torch.allclose(whole.log_lik, chunked.log_lik, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["trajflow", "trajflow-no-ae"])
+def test_sampling_in_threads_gives_the_serial_draws(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With two torch threads the chunks run in two Python threads of one torch thread each: the same draws as
+    one after the other (float rounding only), and torch's thread count is two again afterwards."""
+    model = _model(name).eval()
+    batch = crowd_batch(13, neighbours=4).without_future()
+    monkeypatch.setattr(type(model), "SAMPLE_CHUNK_ROWS", 6 * 3)                # 6 chunks of 2 or 3 problems
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        serial = model.sample(batch, 6, steps=14, generator=torch.Generator().manual_seed(3))
+        torch.set_num_threads(2)
+        threaded = model.sample(batch, 6, steps=14, generator=torch.Generator().manual_seed(3))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert torch.allclose(serial.trajectories, threaded.trajectories, rtol=1e-5, atol=1e-5)
+    assert torch.allclose(serial.log_lik, threaded.log_lik, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("problems, n, rows, workers", [(1000, 100, 10_000, 2), (512, 100, 10_000, 2),
+                                                        (512, 100, 10_000, 1), (13, 6, 18, 2), (3, 20, 10_000, 2),
+                                                        (1, 100, 10, 4), (7, 0, 10_000, 3)])
+def test_sample_chunks_cover_the_problems_in_equal_pieces(problems: int, n: int, rows: int, workers: int) -> None:
+    chunks = sample_chunks(problems, n, rows, workers)
+    covered = torch.cat([torch.arange(problems)[chunk] for chunk in chunks])
+    assert torch.equal(covered, torch.arange(problems))
+    sizes = [chunk.stop - chunk.start for chunk in chunks]
+    assert max(sizes) - min(sizes) <= 1 and min(sizes) >= 1
+    assert (max(sizes) - 1) * n < max(rows, n)
+    assert len(chunks) % workers == 0 or len(chunks) == problems
+    assert sample_chunks(0, n, rows, workers) == [slice(0, 0)]
 
 
 def test_size_groups_keep_padding_and_group_edges_in_bounds() -> None:

@@ -11,7 +11,7 @@ import torch
 from typer.testing import CliRunner
 
 from trajflow_pipeline.cli import app as cli
-from trajflow_pipeline.model.runtime import _cpu_times, busy_cpus, fit_threads_to_idle_cpus
+from trajflow_pipeline.model.runtime import _cpu_times, busy_cpus, fit_threads_to_idle_cpus, map_in_threads
 
 
 @pytest.fixture
@@ -81,3 +81,39 @@ def test_console_script_lowers_threads_for_model_commands_only(restore_threads: 
     assert calls == ["fit"] and "1 torch thread(s) instead of 2" in result.output
     runner.invoke(cli.app, ["inspect", str(tmp_path / "no-data")], obj=console_script)
     assert calls == ["fit"]
+
+
+def test_map_in_threads_keeps_order_grad_mode_and_the_thread_count(restore_threads: None) -> None:
+    """On a CPU with two torch threads the items run in two Python threads at one torch thread each, in order,
+    with the caller's gradient mode; the thread count is restored afterwards, also when an item fails."""
+    import threading
+
+    torch.set_num_threads(2)
+    seen: list[tuple[int, bool, int, str]] = []
+
+    def work(item: int) -> int:
+        seen.append((item, torch.is_grad_enabled(), torch.get_num_threads(), threading.current_thread().name))
+        return item * item
+
+    with torch.no_grad():
+        assert map_in_threads(work, list(range(6)), torch.device("cpu")) == [i * i for i in range(6)]
+    assert torch.get_num_threads() == 2
+    assert {grad for _, grad, _, _ in seen} == {False} and {threads for _, _, threads, _ in seen} == {1}
+    assert all(name.startswith("trajflow-chunk") for *_, name in seen)
+
+    def fail(item: int) -> int:
+        raise ValueError(f"item {item}")
+
+    with pytest.raises(ValueError, match="item"):
+        map_in_threads(fail, [1, 2], torch.device("cpu"))
+    assert torch.get_num_threads() == 2
+
+
+def test_map_in_threads_runs_in_the_caller_with_one_thread_or_one_item(restore_threads: None) -> None:
+    import threading
+
+    caller = threading.current_thread().name
+    torch.set_num_threads(1)
+    assert map_in_threads(lambda _: threading.current_thread().name, [1, 2], torch.device("cpu")) == [caller] * 2
+    torch.set_num_threads(2)
+    assert map_in_threads(lambda _: threading.current_thread().name, [1], torch.device("cpu")) == [caller]

@@ -17,11 +17,17 @@ import ctypes.util
 import os
 import sys
 import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 
 from ..errors import UsageError
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_MAX = -4
@@ -102,6 +108,37 @@ def fit_threads_to_idle_cpus(busy: float | None = None) -> tuple[int, int] | Non
         return None
     torch.set_num_threads(wanted)
     return threads, wanted
+
+
+def cpu_workers(device: torch.device) -> int:
+    """How many Python threads :func:`map_in_threads` runs on `device`: torch's thread count on a CPU, else 1."""
+    return torch.get_num_threads() if device.type == "cpu" else 1
+
+
+def map_in_threads(fn: Callable[[T], R], items: Sequence[T], device: torch.device) -> list[R]:
+    """[fn(item) for item in items], on a CPU with T > 1 torch threads run by T Python threads of one torch
+    thread each (the global thread count is restored afterwards); elsewhere one after the other.
+
+    For independent pieces of large no-grad work such as sampling's chunks: their kernels release the GIL, and
+    two whole chunks side by side keep two cores busier than every kernel split in two (measured on the 2-core
+    AMD EPYC, 100 draws for 1000 agents: 1.8x one thread, where torch's two threads reached 1.0-1.6x).
+    Gradient mode, which is per thread in torch, is carried into the workers."""
+    workers = min(cpu_workers(device), len(items))
+    if workers <= 1:
+        return [fn(item) for item in items]
+    grad = torch.is_grad_enabled()
+
+    def call(item: T) -> R:
+        with torch.set_grad_enabled(grad):
+            return fn(item)
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(workers, thread_name_prefix="trajflow-chunk") as pool:
+            return list(pool.map(call, items))
+    finally:
+        torch.set_num_threads(threads)
 
 
 def resolve_device(name: str, local_rank: int | None = None) -> torch.device:
