@@ -122,7 +122,8 @@ def map_in_threads(fn: Callable[[T], R], items: Sequence[T], device: torch.devic
     For independent pieces of large no-grad work such as sampling's chunks: their kernels release the GIL, and
     two whole chunks side by side keep two cores busier than every kernel split in two (measured on the 2-core
     AMD EPYC, 100 draws for 1000 agents: 1.8x one thread, where torch's two threads reached 1.0-1.6x).
-    Gradient mode, which is per thread in torch, is carried into the workers."""
+    Gradient mode, which is per thread in torch, is carried into the workers. torch's thread count is global to
+    the process: torch work that other threads of the caller run meanwhile runs at one thread too."""
     workers = min(cpu_workers(device), len(items))
     if workers <= 1:
         return [fn(item) for item in items]
