@@ -47,9 +47,9 @@ from .batch import SceneBatch
 from .config import DataSpec, ModelConfig
 from .encoders import ContextEncoder, MapEncoder, PastEncoder, SocialGNN
 from .flow import ConditionalSplineFlow
-from .runtime import cpu_workers, map_in_threads
 from .normalize import (MIN_STEP, Frame, denormalize_future, normalize_future, scene_speed, target_frame,
                         to_local, to_world)
+from .runtime import cpu_workers, map_in_threads
 
 
 #: How a model predicts past its trained horizon (``TrajectoryModel.beyond_horizon``).
