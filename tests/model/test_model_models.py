@@ -15,8 +15,9 @@ from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
 from trajflow_pipeline.model.encoders import (SocialGNN, compact_neighbours, pool_edges, pool_edges_to_compile,
                                              size_groups, social_nodes)
-from trajflow_pipeline.model.models import (FloMo, build_model, extend_constant_velocity, sample_chunks, scale_scene,
+from trajflow_pipeline.model.models import (FloMo, build_model, extend_constant_velocity, scale_scene,
                                              truncated_normal_scales)
+from trajflow_pipeline.model.runtime import thread_chunks
 from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
 from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
 
@@ -372,14 +373,14 @@ def test_sampling_in_threads_gives_the_serial_draws(name: str, monkeypatch: pyte
                                                         (512, 100, 10_000, 1), (13, 6, 18, 2), (3, 20, 10_000, 2),
                                                         (1, 100, 10, 4), (7, 0, 10_000, 3)])
 def test_sample_chunks_cover_the_problems_in_equal_pieces(problems: int, n: int, rows: int, workers: int) -> None:
-    chunks = sample_chunks(problems, n, rows, workers)
+    chunks = thread_chunks(problems, n, rows, workers)
     covered = torch.cat([torch.arange(problems)[chunk] for chunk in chunks])
     assert torch.equal(covered, torch.arange(problems))
     sizes = [chunk.stop - chunk.start for chunk in chunks]
     assert max(sizes) - min(sizes) <= 1 and min(sizes) >= 1
     assert (max(sizes) - 1) * n < max(rows, n)
     assert len(chunks) % workers == 0 or len(chunks) == problems
-    assert sample_chunks(0, n, rows, workers) == [slice(0, 0)]
+    assert thread_chunks(0, n, rows, workers) == [slice(0, 0)]
 
 
 def test_size_groups_keep_padding_and_group_edges_in_bounds() -> None:

@@ -49,7 +49,7 @@ from .encoders import ContextEncoder, MapEncoder, PastEncoder, SocialGNN
 from .flow import ConditionalSplineFlow
 from .normalize import (MIN_STEP, Frame, denormalize_future, normalize_future, scene_speed, target_frame,
                         to_local, to_world)
-from .runtime import cpu_workers, map_in_threads
+from .runtime import cpu_workers, map_in_threads, thread_chunks
 
 
 #: How a model predicts past its trained horizon (``TrajectoryModel.beyond_horizon``).
@@ -385,23 +385,10 @@ class FlowModel(TrajectoryModel):
             x, log_lik = self.flow.from_noise(z[:, chunk], context[chunk], temperature)   # (n, b, D), (n, b)
             return self.decode(x, steps).transpose(0, 1), log_lik.transpose(0, 1)          # (b, n, steps, 2), (b, n)
 
-        pieces = map_in_threads(draw, sample_chunks(len(batch), n, self.SAMPLE_CHUNK_ROWS,
-                                                    cpu_workers(z.device)), z.device)
+        pieces = map_in_threads(draw, thread_chunks(len(batch), n, self.SAMPLE_CHUNK_ROWS, cpu_workers(z.device)),
+                                z.device)
         trajectories = denormalize_future(torch.cat([piece[0] for piece in pieces]), norm.frame, self.config.alpha)
         return Samples(trajectories, torch.cat([piece[1] for piece in pieces]))
-
-
-def sample_chunks(problems: int, n: int, rows: int, workers: int) -> list[slice]:
-    """Slices of the problems to sample `n` draws each for at a time: about `rows` rows (draws x problems) each
-    at most, their sizes within one problem of each other, their count a multiple of `workers` where there are
-    enough problems; one empty slice for no problems."""
-    if problems == 0:
-        return [slice(0, 0)]
-    count = -(-problems * max(n, 1) // rows)
-    count = min(problems, -(-count // workers) * workers)
-    size, longer = divmod(problems, count)
-    starts = [index * size + min(index, longer) for index in range(count + 1)]
-    return [slice(start, stop) for start, stop in zip(starts, starts[1:])]
 
 
 class TrajFlow(FlowModel):

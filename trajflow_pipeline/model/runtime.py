@@ -115,6 +115,19 @@ def cpu_workers(device: torch.device) -> int:
     return torch.get_num_threads() if device.type == "cpu" else 1
 
 
+def thread_chunks(items: int, rows_per_item: int, max_rows: int, workers: int) -> list[slice]:
+    """Slices of `items` (each `rows_per_item` rows of work) for :func:`map_in_threads`: about `max_rows` rows each
+    at most, their sizes within one item of each other and their count a multiple of `workers` where there are
+    enough items, so that no thread waits for a longer last chunk; one empty slice for no items."""
+    if items == 0:
+        return [slice(0, 0)]
+    count = -(-items * max(rows_per_item, 1) // max_rows)
+    count = min(items, -(-count // workers) * workers)
+    size, longer = divmod(items, count)
+    starts = [index * size + min(index, longer) for index in range(count + 1)]
+    return [slice(start, stop) for start, stop in zip(starts, starts[1:])]
+
+
 def map_in_threads(fn: Callable[[Item], Result], items: Sequence[Item], device: torch.device) -> list[Result]:
     """[fn(item) for item in items], on a CPU with T > 1 torch threads run by T Python threads of one torch
     thread each (the global thread count is restored afterwards); elsewhere one after the other.
