@@ -183,7 +183,7 @@ samples = 80
 models = {json.dumps(models)}
 seeds = {json.dumps(seeds)}
 [train]
-set = {json.dumps(TINY[2:])}
+set = {json.dumps(TINY)}
 [eval]
 samples = 10
 k = 5
