@@ -17,8 +17,8 @@ from trajflow_pipeline.model.encoders import (SocialGNN, compact_neighbours, poo
                                              size_groups, social_nodes)
 from trajflow_pipeline.model.models import (FloMo, build_model, extend_constant_velocity, scale_scene,
                                              truncated_normal_scales)
-from trajflow_pipeline.model.runtime import thread_chunks
 from trajflow_pipeline.model.normalize import displacements_to_positions, target_frame, to_local
+from trajflow_pipeline.model.runtime import thread_chunks
 from trajflow_pipeline.model.toy import bimodal_batch, crowd_batch
 
 SPEC = DataSpec(n_past=8, n_future=12)
