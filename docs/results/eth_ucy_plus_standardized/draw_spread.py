@@ -9,18 +9,25 @@ draws the test futures again with `trajflow eval`'s defaults (100 draws, seed 0;
 fit) and prints, at the last predicted step: the spread (the mean distance of the 100 draws from their centroid),
 the centroid's distance from the ground truth, and minFDE over the first 20 draws, as means over the test agents,
 overall and by thirds of the agents' ground-truth travel over the horizon (shortest to longest).
+
+With `--temperature T` (repeatable) it draws with the flow's base N(0, T^2 I) instead, by writing
+`model.flow_temperature = T` into the copy's model: a diagnostic of how much of a gap the draws' width explains.
+It is chosen here on the test location, so it is never a method, and it is refused for runs whose temperature
+was fitted (`model.flow_temperature_grid`).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
 
 import polars as pl
 
-from trajflow_pipeline.rundir import EVAL_DIR, GROUND_TRUTH_FILE, PREDICTIONS_FILE
+from trajflow_pipeline.model.checkpoint import load_model, read_model_metadata, save_model
+from trajflow_pipeline.rundir import EVAL_DIR, FINAL_DIR, GROUND_TRUTH_FILE, PREDICTIONS_FILE
 from trajflow_pipeline.stages.evaluate import EvalOptions, evaluate
 
 K = 20
@@ -63,22 +70,40 @@ def summary(per_agent: pl.DataFrame) -> str:
             f"{overall[2]:.3f} m; by thirds of travel: {by_third}")
 
 
+def set_temperature(run: Path, temperature: float) -> None:
+    """Rewrite the run's final model with `model.flow_temperature = temperature` (the same weights)."""
+    final = run / FINAL_DIR
+    model = load_model(final)
+    if model.config.flow_temperature_grid:
+        raise SystemExit(f"error: {run}: its temperature was fitted (model.flow_temperature_grid); "
+                         "--temperature is for runs without that stage")
+    model.config = dataclasses.replace(model.config, flow_temperature=temperature)
+    save_model(model, final, extra=read_model_metadata(final)["extra"])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("fold_seed", help="FOLD-SEED of the run, e.g. zara1-s2")
     parser.add_argument("folders", nargs="+", type=Path, help="published folders holding models/trajflow-FOLD-SEED")
     parser.add_argument("--data", type=Path, default=None, help="the dataset (default: the run's)")
+    parser.add_argument("--temperature", type=float, action="append", default=None,
+                        help="draw with this base temperature instead of the run's (repeatable; a diagnostic)")
     args = parser.parse_args()
     run = f"trajflow-{args.fold_seed}"
     for folder in args.folders:
         source = folder / "models" / run
         if not source.is_dir():
             raise SystemExit(f"error: {source}: no published run {run} in {folder}")
-        with tempfile.TemporaryDirectory() as scratch:
-            copy = Path(scratch) / run
-            shutil.copytree(source, copy, ignore=shutil.ignore_patterns(EVAL_DIR))
-            eval_dir = evaluate(copy, data=args.data, options=EvalOptions(metrics=("min_ade", "min_fde")), quiet=True)
-            print(f"{folder.name}: {summary(final_step_figures(eval_dir))}")
+        for temperature in args.temperature or [None]:
+            with tempfile.TemporaryDirectory() as scratch:
+                copy = Path(scratch) / run
+                shutil.copytree(source, copy, ignore=shutil.ignore_patterns(EVAL_DIR))
+                if temperature is not None:
+                    set_temperature(copy, temperature)
+                eval_dir = evaluate(copy, data=args.data, options=EvalOptions(metrics=("min_ade", "min_fde")),
+                                    quiet=True)
+                label = folder.name if temperature is None else f"{folder.name}, T = {temperature}"
+                print(f"{label}: {summary(final_step_figures(eval_dir))}")
 
 
 if __name__ == "__main__":
