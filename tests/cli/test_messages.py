@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import pytest
+from rich.console import Console
+from rich.table import Table
 from typer.testing import CliRunner
 
 from trajflow_pipeline.cli.app import app
+from trajflow_pipeline.cli.render import show
 from trajflow_pipeline.ingest.synthetic import ingest_synthetic_bimodal
 from trajflow_pipeline.util.progress import say
 
@@ -33,6 +37,49 @@ def test_tables_show_cells_exactly(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     # the table's title wraps to the table's width wherever the temporary path is long: compare without spaces
     assert "d[x]:100:" in "".join(result.output.split()) and "💯" not in result.output
+
+
+def _console(width: int, terminal: bool) -> Console:
+    return Console(file=io.StringIO(), width=width, force_terminal=terminal, color_system=None, markup=False,
+                   emoji=False, highlight=False)
+
+
+def _runs(leave_out: tuple[str, ...]) -> Table:
+    """A status-like table: a no-wrap name, cells with spaces, one optional column."""
+    headers = ("run", "state", "stage: epoch", "trained", "minADE/FDE")
+    cells = ("trajflow-zara2-s1", "training or interrupted", "autoencoder: 35/5000", "70 min", "0.243/0.435")
+    table = Table(title="experiment x")
+    for header in headers:
+        if header not in leave_out:
+            table.add_column(header, no_wrap=header == "run")
+    table.add_row(*(cell for header, cell in zip(headers, cells) if header not in leave_out))
+    return table
+
+
+def test_tables_written_to_a_pipe_keep_their_natural_width() -> None:
+    """Not a terminal (a file, a pipe, CI's log): rich would assume 80 columns and cut cells with an ellipsis."""
+    table = Table(title="wide")
+    table.add_column("a")
+    table.add_column("b")
+    table.add_row("a" * 70, "b" * 70)
+    out = _console(80, terminal=False)
+    assert show(table, out) == []
+    text = out.file.getvalue()
+    assert "a" * 70 in text and "b" * 70 in text and "…" not in text
+
+
+def test_tables_in_a_narrow_terminal_leave_out_optional_columns_then_wrap_at_spaces() -> None:
+    narrow = _console(66, terminal=True)  # the longest words need 64 columns with the borders
+    assert show(_runs, narrow, optional=("trained",)) == ["trained"]
+    lines = narrow.file.getvalue().splitlines()
+    assert max(len(line) for line in lines) <= 66 and "…" not in "".join(lines)
+    assert "trained" not in "".join(lines)
+    words = " ".join(lines).split()  # wrapped at spaces: every word whole, numbers never split
+    for word in ("trajflow-zara2-s1", "training", "interrupted", "autoencoder:", "35/5000", "0.243/0.435"):
+        assert word in words
+    wide = _console(200, terminal=True)
+    assert show(_runs, wide, optional=("trained",)) == []
+    assert "70 min" in wide.file.getvalue()
 
 
 @pytest.mark.parametrize("name", ["n" * 250, "é" * 127], ids=["250 ascii bytes", "254 utf-8 bytes"])

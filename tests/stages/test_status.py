@@ -222,9 +222,10 @@ def test_cli_table_json_and_errors(tmp_path: Path) -> None:
     out = write_experiment(tmp_path / "exp")
     write_run(out, "trajflow-eth-s0", status="finished", log=autoencoder_then_flow([-1, -2]), evaluated=True)
     runner = CliRunner()
-    result = runner.invoke(app, ["status", str(out)], env={"COLUMNS": "160"})
+    result = runner.invoke(app, ["status", str(out)])  # not a terminal: the table keeps its width, whatever COLUMNS
     assert result.exit_code == 0, result.output
     assert "trajflow-eth-s0" in result.output and "0.250/0.500" in result.output and "flow: 2/8" in result.output
+    assert "s/epoch" in result.output and "…" not in result.output
     assert "4 runs: 3 planned, 1 done" in result.output
     as_json = json.loads(runner.invoke(app, ["status", str(out), "--json"]).stdout)
     assert [r["state"] for r in as_json["runs"]] == ["planned", "planned", "done", "planned"]

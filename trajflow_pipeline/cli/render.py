@@ -1,4 +1,5 @@
-"""What the commands print as their output (stdout): the tables of inspect, eval and status, in one place."""
+"""What the commands print as their output (stdout): the tables of inspect, eval and status, in one place, each
+printed whole by :func:`show` (never a cell cut short, whether to a terminal of any width or to a file)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rich import box
+from rich.cells import cell_len
 from rich.console import Console
-from rich.table import Table
+from rich.measure import Measurement
+from rich.segment import Segments
+from rich.table import Column, Table
 from rich.text import Text
 
 from ..util.progress import duration_text, say, stdout
@@ -45,19 +50,19 @@ def print_dataset_summary(summary: dict) -> None:
         overview.add_row(key, str(summary[key]))
     overview.add_row("horizons (past/future)",
                      ", ".join(f"{h['n_past']}/{h['n_future']} ({h['len']})" for h in summary["horizons"]))
-    stdout.print(overview)
+    show(overview, stdout)
     splits = Table(title="samples by fold and split")
     for column in ("fold", "split", "samples", "groups"):
         splits.add_column(column, justify="right" if column in ("samples", "groups") else "left")
     for row in summary["samples_by_fold_and_split"]:
         splits.add_row(str(row["fold"] or "-"), str(row["split"] or "-"), str(row["samples"]), str(row["groups"]))
-    stdout.print(splits)
+    show(splits, stdout)
     types = Table(title="agent types")
     for column in ("agent_type", "agents", "rows"):
         types.add_column(column)
     for row in summary["agent_types"]:
         types.add_row(row["agent_type"], str(row["agents"]), str(row["rows"]))
-    stdout.print(types)
+    show(types, stdout)
 
 
 def print_metric_means(title: str, means: dict[str, float]) -> None:
@@ -67,7 +72,7 @@ def print_metric_means(title: str, means: dict[str, float]) -> None:
     table.add_column("value", justify="right")
     for name, value in means.items():
         table.add_row(name, f"{value:.4f}")
-    stdout.print(table)
+    show(table, stdout)
 
 
 def print_status(status: ExperimentStatus, out: Console) -> None:
@@ -81,18 +86,10 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
             stages.add_row(stage.stage.label, str(stage.stage.path),
                            Text(state, style=_DATA_STYLE.get(stage.state, "")),
                            str(stage.record.builds) if stage.record else "", stage.reason)
-        out.print(stages)
-    table = Table(title=f"{status.kind} {status.name}  ({status.path})")
-    table.add_column("run", no_wrap=True)
-    table.add_column("state")
-    for column in ("stage: epoch", "best (patience)", "s/epoch", "stage left", "trained", "minADE/FDE"):
-        table.add_column(column, justify="right")
-    for run in status.runs:
-        metrics = [run.metrics.get("min_ade"), run.metrics.get("min_fde")]
-        table.add_row(run.name, Text(run.state, style=_STATE_STYLE.get(run.state, "")), *_progress_cells(run),
-                      duration_text(run.train_seconds) if run.train_seconds else "",
-                      "/".join(f"{v:.3f}" for v in metrics if v is not None))
-    out.print(table)
+        show(stages, out)
+    left_out = show(lambda leave_out: _runs_table(status, leave_out), out, optional=_STATUS_OPTIONAL)
+    if left_out:
+        say(f"({' and '.join(left_out)} left out at this terminal's width; `--json` has every field)", out=out)
     states = Counter(run.state for run in status.runs)
     trained = sum(run.train_seconds for run in status.runs)
     evaluated = sum(run.eval_seconds or 0.0 for run in status.runs)
@@ -105,6 +102,100 @@ def print_status(status: ExperimentStatus, out: Console) -> None:
             say((f"{run.name}:", "red"), f" {run.problem}", out=out)
     if status.note:
         say(("note:", "yellow"), f" {status.note}", out=out)
+
+
+#: the status columns a narrow terminal leaves out first (the time a stage may still take already uses s/epoch)
+_STATUS_OPTIONAL = ("s/epoch", "trained")
+
+
+def _runs_table(status: ExperimentStatus, leave_out: tuple[str, ...] = ()) -> Table:
+    """The runs of `status`, a row each, without the columns named in `leave_out`; no vertical rules, so that
+    it fits a terminal of 80 columns more often (two spaces between columns, none at the edges)."""
+    table = Table(title=f"{status.kind} {status.name}  ({status.path})", box=box.SIMPLE_HEAD, show_edge=False,
+                  padding=(0, 1, 0, 0), pad_edge=False)
+    headers = ("run", "state", "stage: epoch", "best (patience)", "s/epoch", "stage left", "trained", "minADE/FDE")
+    kept = [header not in leave_out for header in headers]
+    for header, keep in zip(headers, kept):
+        if keep:
+            table.add_column(header, justify="left" if header in ("run", "state") else "right",
+                             no_wrap=header == "run")
+    for run in status.runs:
+        metrics = [run.metrics.get("min_ade"), run.metrics.get("min_fde")]
+        cells = [run.name, Text(run.state, style=_STATE_STYLE.get(run.state, "")), *_progress_cells(run),
+                 duration_text(run.train_seconds) if run.train_seconds else "",
+                 "/".join(f"{v:.3f}" for v in metrics if v is not None)]
+        table.add_row(*(cell for cell, keep in zip(cells, kept) if keep))
+    return table
+
+
+def show(table: Table | Callable[[tuple[str, ...]], Table], out: Console,
+         optional: tuple[str, ...] = ()) -> list[str]:
+    """Print a table whole: no cell is ever cut short with an ellipsis. Written to a file or a pipe (no
+    terminal to fit, and rich would assume 80 columns) it keeps its natural width. In a terminal narrower than
+    that, headers wrap at their spaces first; if that is not enough and `table` is given as a function of the
+    headers to leave out, it is built again without the `optional` columns, one by one, until it fits; then
+    cells wrap at their spaces, and what still does not fit folds onto more lines. Returns the headers left
+    out."""
+    build = table if callable(table) else (lambda leave_out: table)
+    left_out: list[str] = []
+    shown = build(())
+    if not out.is_terminal:  # rendered at its own width (print's width= can only narrow) and printed uncropped
+        width = max(out.width, _natural_width(shown, out))
+        out.print(Segments(out.render(shown, out.options.update_width(width))), crop=False, soft_wrap=True)
+        return left_out
+    for header in optional:
+        if _narrow(shown, out, (_widest_cell,)):
+            break
+        left_out.append(header)
+        shown = build(tuple(left_out))
+    _narrow(shown, out, (_widest_cell, _longest_word))
+    out.print(shown)
+    return left_out
+
+
+def _natural_width(table: Table, out: Console) -> int:
+    """The width `table` takes when nothing has to wrap."""
+    return Measurement.get(out, out.options.update_width(10_000), table).maximum
+
+
+def _narrow(table: Table, out: Console, floors: tuple[Callable[[Column], int], ...]) -> bool:
+    """Narrow the wrappable columns of `table` until it fits `out`, each in turn down to each floor: first
+    `_widest_cell` (headers wrap at their spaces: a line once), then `_longest_word` (cells wrap: a line every
+    row), the columns with the most room first (rich alone narrows all columns evenly once two are equally
+    wide, splitting numbers); what still does not fit folds, never cut. Whether it fits."""
+    for column in table.columns:
+        column.overflow = "fold"
+    wrappable = [column for column in table.columns if not column.no_wrap]
+    for floor in floors:
+        for column in sorted(wrappable, key=lambda column: floor(column) - _width_now(column)):
+            excess = _natural_width(table, out) - out.width
+            if excess <= 0:
+                return True
+            column.max_width = max(floor(column), _width_now(column) - excess)
+    return _natural_width(table, out) <= out.width
+
+
+def _width_now(column: Column) -> int:
+    """The width a column may take now: its limit if one was set, else its widest line."""
+    return column.max_width if column.max_width is not None else _column_width(column)
+
+
+def _widest_cell(column: Column) -> int:
+    """The widest cell of a column, or its header's longest word if wider: its width with the header wrapped."""
+    widest = max((cell_len(line) for cell in column.cells for line in str(cell).splitlines()), default=0)
+    return max(widest, max((cell_len(word) for word in str(column.header).split()), default=1))
+
+
+def _column_width(column: Column) -> int:
+    """The widest line among a column's header and cells."""
+    texts = [str(column.header), *(str(cell) for cell in column.cells)]
+    return max(cell_len(line) for text in texts for line in text.splitlines() or [""])
+
+
+def _longest_word(column: Column) -> int:
+    """The longest word among a column's header and cells: as narrow as it can get without splitting one."""
+    texts = [str(column.header), *(str(cell) for cell in column.cells)]
+    return max((cell_len(word) for text in texts for word in text.split()), default=1)
 
 
 def _progress_cells(run: RunStatus) -> list[str]:
