@@ -2,24 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from types import ModuleType
 
 import polars as pl
 import pytest
+from results_scripts import load_results_script
 
 from trajflow_pipeline.rundir import GROUND_TRUTH_FILE, PREDICTIONS_FILE
 
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "results" / "eth_ucy_plus_standardized" / "draw_spread.py"
-
 
 def load_script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("draw_spread", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_results_script("eth_ucy_plus_standardized/draw_spread.py")
 
 
 def write_eval(folder: Path) -> None:

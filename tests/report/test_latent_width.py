@@ -3,27 +3,20 @@
 from __future__ import annotations
 
 import copy
-import importlib.util
 from dataclasses import replace
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 import torch
+from results_scripts import load_results_script
 
 from trajflow_pipeline.model.config import DataSpec, ModelConfig
 from trajflow_pipeline.model.models import build_model
 from trajflow_pipeline.model.toy import crowd_batch
 
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "results" / "eth_ucy_plus_standardized" / "latent_width.py"
-
 
 def load_script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("latent_width", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_results_script("eth_ucy_plus_standardized/latent_width.py")
 
 
 def test_twins_in_the_standardized_units() -> None:

@@ -4,7 +4,6 @@ that, which `trajflow experiment` then continues without training or evaluating 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -13,6 +12,7 @@ import polars as pl
 import pytest
 import torch
 
+from results_scripts import load_results_script
 from test_eval_stage import write_tiny_experiment
 
 from trajflow_pipeline.errors import TrajflowError, UsageError
@@ -25,15 +25,9 @@ from trajflow_pipeline.stages.report import report
 from trajflow_pipeline.training import check_state
 from trajflow_pipeline.training import loop as train_loop
 
-PUBLISH = Path(__file__).resolve().parents[2] / "docs" / "results" / "publish.py"
-
-
 def load_publish():
     """docs/results/publish.py as a module (it is a script, not part of the package)."""
-    spec = importlib.util.spec_from_file_location("publish", PUBLISH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_results_script("publish.py")
 
 
 class Killed(Exception):
