@@ -12,7 +12,7 @@ from trajflow_pipeline.errors import UsageError
 from trajflow_pipeline.model.batch import SceneBatch
 from trajflow_pipeline.model.config import MODEL_NAMES, DataSpec, ModelConfig
 from trajflow_pipeline.model.models import build_model
-from trajflow_pipeline.model.normalize import scene_speed, target_frame, to_local, to_world
+from trajflow_pipeline.model.normalize import lower_quantile, scene_speed, target_frame, to_local, to_world
 from trajflow_pipeline.model.toy import crowd_batch
 
 SPEC = DataSpec(n_past=8, n_future=12)
@@ -38,6 +38,27 @@ def test_scene_speed_is_the_mean_observed_step_of_every_agent() -> None:
     assert scene_speed(past, neighbours, valid, mask).tolist() == pytest.approx([(1 + 2 + 4) / 3])
     still = torch.zeros(1, 3, 2)
     assert scene_speed(still, neighbours[:, :0], valid[:, :0], mask[:, :0]).tolist() == [0.0]
+
+
+def test_the_reference_is_a_quantile_of_the_training_paces() -> None:
+    """speed_normalize_quantile: 0.5 is torch's median (the lower middle value); a higher quantile scales fewer
+    training scenes, and with speed_normalize_max = 1 only those faster than the reference."""
+    batch = crowd_batch(41, neighbours=3)
+    speeds = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
+    references = {}
+    for q in (0.5, 0.9):
+        model = build_model(ModelConfig(name="cv", speed_normalize=True, speed_normalize_max=1.0,
+                                        speed_normalize_quantile=q), SPEC)
+        model.fit_data_constants(batch)
+        references[q] = float(model.speed_reference)
+        scaled = model.speed_scales(batch) < 1
+        assert torch.equal(scaled, speeds > model.speed_reference)
+    assert references[0.5] == float(speeds.median())
+    assert references[0.9] == float(speeds.sort().values[36])                            # floor(0.9 * 40)
+    even = speeds[:40]
+    assert float(lower_quantile(even, 0.5)) == float(even.median())
+    with pytest.raises(UsageError, match="speed_normalize_quantile"):
+        ModelConfig(speed_normalize_quantile=1.0).validate()
 
 
 def test_a_scaled_frame_round_trips_exactly() -> None:

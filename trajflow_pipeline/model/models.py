@@ -47,8 +47,8 @@ from .batch import SceneBatch
 from .config import DataSpec, ModelConfig
 from .encoders import ContextEncoder, MapEncoder, PastEncoder, SocialGNN
 from .flow import ConditionalSplineFlow
-from .normalize import (MIN_STEP, Frame, denormalize_future, normalize_future, scene_speed, target_frame,
-                        to_local, to_world)
+from .normalize import (MIN_STEP, Frame, denormalize_future, lower_quantile, normalize_future, scene_speed,
+                        target_frame, to_local, to_world)
 from .runtime import cpu_workers, map_in_threads, thread_chunks
 
 
@@ -116,11 +116,12 @@ class TrajectoryModel(nn.Module, abc.ABC):
 
     def fit_data_constants(self, batch: SceneBatch) -> None:
         """Fit, on the training split and before the first stage, what the model derives from its data rather
-        than learns: model.speed_normalize's reference pace, the median scene speed of the training problems.
-        Kept with the weights (a buffer), so a resumed run or a loaded model keeps it; fitted only once."""
+        than learns: model.speed_normalize's reference pace, the model.speed_normalize_quantile of the training
+        problems' scene speeds (the lower of two neighbours, no interpolation: at 0.5 torch's median). Kept with
+        the weights (a buffer), so a resumed run or a loaded model keeps it; fitted only once."""
         if self.config.speed_normalize and torch.isnan(self.speed_reference):
             speed = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
-            self.speed_reference.fill_(speed.median())
+            self.speed_reference.fill_(lower_quantile(speed, self.config.speed_normalize_quantile))
 
     def speed_scales(self, batch: SceneBatch) -> Tensor:
         """Per problem (B,), the factor model.speed_normalize scales its scene by: the reference pace over the

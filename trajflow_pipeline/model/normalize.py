@@ -113,6 +113,13 @@ def scene_speed(past: Tensor, neighbours: Tensor, neighbours_valid: Tensor, neig
     return total / count.clamp(min=1)
 
 
+def lower_quantile(values: Tensor, q: float) -> Tensor:
+    """The q-quantile of a 1-d tensor without interpolation: the sorted value at index floor(q (n - 1)), so at
+    q = 0.5 the lower of the two middle values, as torch.median gives (and no size limit, unlike
+    torch.quantile)."""
+    return values.sort().values[int(q * (values.numel() - 1))]
+
+
 def positions_to_displacements(positions: Tensor, alpha: float) -> Tensor:
     """Local future positions (B, F, 2) (origin = position at t0) -> alpha-scaled per-step displacements."""
     previous = torch.cat((torch.zeros_like(positions[:, :1]), positions[:, :-1]), dim=1)
