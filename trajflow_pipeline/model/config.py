@@ -97,12 +97,12 @@ class ModelConfig:
     scale_augment_max: float = bounded(1.7, ge=1)
     #: Not in the paper: each problem's scene is scaled, in its target frame, by speed_reference / s, where s is
     #: the mean step length of every agent's observed past at t0 (target and neighbours; normalize.scene_speed)
-    #: and speed_reference the median s of the training problems (speed_normalize_quantile; fitted before the
-    #: first stage and kept with
-    #: the weights); the factor is clipped to [speed_normalize_min, speed_normalize_max] and the draws are scaled
-    #: back. So a location whose agents walk faster than the training locations' (ETH/UCY fold eth: a median s
-    #: of 0.84 m against 0.25 m in training) is seen at the training locations' pace. Every model; not with map
-    #: crops (they are not scaled) nor with a scaling augmentation (it would be undone).
+    #: and speed_reference a quantile of s over the training problems (speed_normalize_quantile, the median by
+    #: default; fitted before the first stage and kept with the weights); the factor is clipped to
+    #: [speed_normalize_min, speed_normalize_max] and the draws are scaled back. So a location whose agents walk
+    #: faster than the training locations' (ETH/UCY fold eth: a median s of 0.84 m against 0.25 m in training) is
+    #: seen at the training locations' pace. Every model; not with map crops (they are not scaled) nor with a
+    #: scaling augmentation (it would be undone).
     speed_normalize: bool = False
     speed_normalize_min: float = bounded(0.33, gt=0, le=1)
     speed_normalize_max: float = bounded(3.0, ge=1)
