@@ -176,25 +176,34 @@ def _narrow(table: Table, out: Console, floors: tuple[Callable[[Column], int], .
 
 
 def _width_now(column: Column) -> int:
-    """The width a column may take now: its limit if one was set, else its widest line."""
-    return column.max_width if column.max_width is not None else _column_width(column)
+    """The width a column may take now: its limit if one was set, else its widest line, header included."""
+    if column.max_width is not None:
+        return column.max_width
+    return _widest_line([str(column.header), *_cell_texts(column)])
 
 
 def _widest_cell(column: Column) -> int:
     """The widest cell of a column, or its header's longest word if wider: its width with the header wrapped."""
-    widest = max((cell_len(line) for cell in column.cells for line in str(cell).splitlines()), default=0)
-    return max(widest, max((cell_len(word) for word in str(column.header).split()), default=1))
-
-
-def _column_width(column: Column) -> int:
-    """The widest line among a column's header and cells."""
-    texts = [str(column.header), *(str(cell) for cell in column.cells)]
-    return max(cell_len(line) for text in texts for line in text.splitlines() or [""])
+    return max(_widest_line(_cell_texts(column)), _longest_word_of([str(column.header)]))
 
 
 def _longest_word(column: Column) -> int:
     """The longest word among a column's header and cells: as narrow as it can get without splitting one."""
-    texts = [str(column.header), *(str(cell) for cell in column.cells)]
+    return _longest_word_of([str(column.header), *_cell_texts(column)])
+
+
+def _cell_texts(column: Column) -> list[str]:
+    """A column's cells as plain text."""
+    return [str(cell) for cell in column.cells]
+
+
+def _widest_line(texts: list[str]) -> int:
+    """The widest line of `texts`, in terminal cells (0 for none)."""
+    return max((cell_len(line) for text in texts for line in text.splitlines()), default=0)
+
+
+def _longest_word_of(texts: list[str]) -> int:
+    """The longest word of `texts`, in terminal cells (at least 1)."""
     return max((cell_len(word) for text in texts for word in text.split()), default=1)
 
 
