@@ -118,3 +118,38 @@ def test_combinations_it_cannot_serve_are_refused() -> None:
     with pytest.raises(UsageError, match="map crops"):
         build_model(ModelConfig(name="trajflow", speed_normalize=True), replace(SPEC, has_map=True))
     build_model(ModelConfig(name="trajflow", speed_normalize=True, use_map=False), replace(SPEC, has_map=True))
+
+
+@pytest.mark.parametrize("name", ["trajflow", "cv"])
+def test_the_sample_threshold_leaves_moderately_fast_scenes_at_their_own_pace(name: str) -> None:
+    """speed_normalize_sample_threshold: when drawing, scenes between the reference and the threshold times it keep
+    factor 1, faster and slower ones are scaled as in training; training's losses and log_likelihood do not change,
+    and a scene left at its own pace is drawn as a model without speed normalization draws it."""
+    batch = _double(crowd_batch(24, neighbours=3))
+    base = dict(name=name, speed_normalize=True, speed_normalize_max=1.0, flomo_scale_std=0.0)
+    torch.manual_seed(0)
+    plain = build_model(ModelConfig(**base), SPEC).double().eval()
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(**base, speed_normalize_sample_threshold=1.1), SPEC).double().eval()
+    for m in (plain, model):
+        m.fit_data_constants(batch)
+        for stage in m.stages:
+            if stage in m.closed_form_stages:
+                m.fit_stage(stage, batch)
+    speeds = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
+    reference = model.speed_reference
+    between = (speeds > reference) & (speeds <= 1.1 * reference)
+    assert between.any() and (speeds > 1.1 * reference).any()
+    trained, drawn = model.speed_scales(batch), model.speed_scales(batch, sampling=True)
+    assert torch.equal(trained, plain.speed_scales(batch, sampling=True))               # threshold 1: as trained
+    assert torch.all(drawn[between] == 1) and torch.all(trained[between] < 1)
+    assert torch.equal(drawn[~between], trained[~between])
+    for stage in model.stages:
+        assert torch.equal(model.stage_loss(stage, batch), plain.stage_loss(stage, batch))
+    assert torch.equal(model.log_likelihood(batch), plain.log_likelihood(batch))
+    draws = model.sample(batch.without_future(), 3, generator=torch.Generator().manual_seed(1)).trajectories
+    before = plain.sample(batch.without_future(), 3, generator=torch.Generator().manual_seed(1)).trajectories
+    assert torch.allclose(draws[~between], before[~between], rtol=1e-9, atol=1e-12)
+    assert not torch.allclose(draws[between], before[between])
+    with pytest.raises(UsageError, match="speed_normalize_sample_threshold"):
+        ModelConfig(speed_normalize_sample_threshold=0.5).validate()

@@ -475,8 +475,37 @@ def test_the_temperature_stage_is_added_changed_and_dropped_when_a_run_resumes(m
     assert log_of(run).get_column("stage").unique().to_list() == ["flow"]
     assert "temperature" not in json.loads((run / "run.json").read_text())["best"]
     assert load_model(run / "final").stages == ("flow",)
-    with pytest.raises(UsageError, match="model.flow_temperature_grid / model.flow_temperature_problems changed"):
+    with pytest.raises(UsageError, match="model.flow_temperature_problems / model.speed_normalize_sample_threshold "
+                                         "changed"):
         train(data, run, resume=True, overrides=["model.flow_bins=4"], **options)
+
+
+@pytest.mark.parametrize("grid", [[], ["model.flow_temperature_grid=[0.5, 1.0, 2.0]",
+                                       "model.flow_temperature_problems=12"]], ids=["no-grid", "grid"])
+def test_a_new_sample_threshold_finishes_a_run_anew_with_the_same_flow(monkeypatch: pytest.MonkeyPatch,
+                                                                      tmp_path: Path, grid: list[str]) -> None:
+    """`train --resume --set model.speed_normalize_sample_threshold=...` on a finished run with speed_normalize,
+    kept whole or published without its training state: no gradient stage runs again; the final model carries the
+    setting (the temperature fitted again where the run has that stage) and is the run trained with it from the
+    start."""
+    install_fake_data(monkeypatch, 80, 24)
+    data = tmp_path / "data"
+    base = [*FAST, *TINY_MODEL, "train.flow_max_epochs=2", "train.flow_batch_size=32", "model.speed_normalize=true",
+            "model.speed_normalize_max=1.0", *grid]
+    threshold = ["model.speed_normalize_sample_threshold=1.05"]
+    options = dict(model="trajflow-no-ae", quiet=True)
+    whole = train(data, tmp_path / "whole", overrides=[*base, *threshold], **options)
+    run = train(data, tmp_path / "run", overrides=base, **options)
+    flow_rows = log_of(run).filter(pl.col("stage") == "flow").height
+    published = tmp_path / "published"
+    shutil.copytree(run, published)
+    shutil.rmtree(published / "checkpoints")
+    for target in (run, published):
+        train(data, target, resume=True, overrides=[*base, *threshold], **options)
+        same_run(target, whole)
+        assert load_model(target / "final").config.speed_normalize_sample_threshold == 1.05
+        assert log_of(target).filter(pl.col("stage") == "flow").height == flow_rows
+        assert load_config(target / "config.toml") == load_config(whole / "config.toml")
 
 
 def test_flow_temperature_and_its_grid_exclude_each_other() -> None:

@@ -105,12 +105,13 @@ class TrajectoryModel(nn.Module, abc.ABC):
         """The training stages, in order, of this family's model built with `config` (known without building it)."""
         return cls.stages
 
-    def normalize(self, batch: SceneBatch) -> Normalized:
+    def normalize(self, batch: SceneBatch, sampling: bool = False) -> Normalized:
         """Target frames, local past and (if present) scaled future displacements of `batch`; with
-        model.speed_normalize the frames scale each scene to the training pace (:meth:`speed_scales`)."""
+        model.speed_normalize the frames scale each scene to the training pace (:meth:`speed_scales`; `sampling`:
+        for drawing futures, where model.speed_normalize_sample_threshold applies)."""
         frame = target_frame(batch.past)
         if self.config.speed_normalize:
-            frame = replace(frame, scale=self.speed_scales(batch))
+            frame = replace(frame, scale=self.speed_scales(batch, sampling))
         future = None if batch.future is None else normalize_future(batch.future, frame, self.config.alpha)
         return Normalized(frame, to_local(batch.past, frame), future)
 
@@ -123,13 +124,20 @@ class TrajectoryModel(nn.Module, abc.ABC):
             speed = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
             self.speed_reference.fill_(lower_quantile(speed, self.config.speed_normalize_quantile))
 
-    def speed_scales(self, batch: SceneBatch) -> Tensor:
+    def speed_scales(self, batch: SceneBatch, sampling: bool = False) -> Tensor:
         """Per problem (B,), the factor model.speed_normalize scales its scene by: the reference pace over the
-        scene's own (:func:`~.normalize.scene_speed`), clipped to [speed_normalize_min, speed_normalize_max]."""
+        scene's own (:func:`~.normalize.scene_speed`), clipped to [speed_normalize_min, speed_normalize_max].
+        When `sampling`, a scene faster than the reference but not faster than speed_normalize_sample_threshold
+        times it keeps its own pace (factor 1)."""
         if torch.isnan(self.speed_reference):
             raise RuntimeError("model.speed_normalize: fit_data_constants(training batch) comes before any use")
         speed = scene_speed(batch.past, batch.neighbours, batch.neighbours_valid, batch.neighbours_mask)
-        ratio = self.speed_reference.to(speed.dtype) / speed.clamp(min=MIN_STEP)
+        reference = self.speed_reference.to(speed.dtype)
+        ratio = reference / speed.clamp(min=MIN_STEP)
+        threshold = self.config.speed_normalize_sample_threshold
+        if sampling and threshold > 1:
+            own_pace = (speed > reference) & (speed <= threshold * reference)
+            ratio = torch.where(own_pace, torch.ones_like(ratio), ratio)
         return ratio.clamp(self.config.speed_normalize_min, self.config.speed_normalize_max)
 
     @abc.abstractmethod
@@ -377,7 +385,7 @@ class FlowModel(TrajectoryModel):
     def sample(self, batch: SceneBatch, n: int, steps: int | None = None,
                generator: torch.Generator | None = None) -> Samples:
         steps = _check_steps(steps, self.spec.n_future)
-        norm = self.normalize(batch)
+        norm = self.normalize(batch, sampling=True)
         context = self.context(batch, norm.frame, norm.local_past)
         temperature = self.sampling_temperature()
         z = self.flow.noise(context, n, generator, temperature)                  # all draws first: one stream
@@ -567,7 +575,7 @@ class ConstantVelocity(TrajectoryModel):
     def sample(self, batch: SceneBatch, n: int, steps: int | None = None,
                generator: torch.Generator | None = None) -> Samples:
         steps = _check_steps(steps, self.spec.n_future)
-        norm = self.normalize(batch)
+        norm = self.normalize(batch, sampling=True)
         size = len(batch)
         k = torch.arange(1, steps + 1, device=batch.past.device, dtype=batch.past.dtype)
         eps = torch.randn((size, n, steps, 2), generator=generator, device=batch.past.device, dtype=batch.past.dtype)

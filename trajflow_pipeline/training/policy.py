@@ -48,7 +48,11 @@ BUDGET_KEYS = {"ae_max_epochs": "autoencoder", "flow_max_epochs": "flow", "ae_pa
 #: it reads them, so a run may change them when it resumes, finished or not. A run past that stage goes back to the
 #: end of its flow (its final flow: the stage changes no weight of it) and fits the stage anew, or drops it when the
 #: grid is emptied (`refit_state`); a finished run needs no training state for that, its final model will do.
-REFIT_MODEL_KEYS = ("flow_temperature_grid", "flow_temperature_problems")
+REFIT_MODEL_KEYS = ("flow_temperature_grid", "flow_temperature_problems", "speed_normalize_sample_threshold")
+#: Of those, the ones that drawing reads (model.speed_normalize_sample_threshold: no training stage reads it, the
+#: temperature stage and evaluation do): with model.speed_normalize on, a change re-finishes every finished run,
+#: with or without the temperature stage, so that its final model and evaluation follow it.
+DRAWING_MODEL_KEYS = ("speed_normalize_sample_threshold",)
 #: The budget keys as users write them, for messages.
 RAISABLE = " / ".join(f"train.{key}" for key in BUDGET_KEYS)
 #: What a resumed run may change, for messages.
@@ -89,8 +93,16 @@ def refit_matters(old: RunConfig, new: RunConfig) -> bool:
     """Whether `new`'s settings of the stage after the flow change what a run of `old` ends with: they differ and
     the model has that stage under one of them (a grid for a model without it, or a new problem count with no
     grid either way, changes nothing)."""
+    changes = refit_change(old, new)
     stages_for = MODEL_CLASSES[new.model.name].stages_for
-    return bool(refit_change(old, new)) and FlowModel.TEMPERATURE in (*stages_for(old.model), *stages_for(new.model))
+    return bool(changes) and (FlowModel.TEMPERATURE in (*stages_for(old.model), *stages_for(new.model))
+                              or changes_draws(new, changes))
+
+
+def changes_draws(config: RunConfig, changes: dict[str, tuple[Any, Any]]) -> bool:
+    """Whether `changes` (:func:`refit_change`'s) hold a setting that drawing reads (DRAWING_MODEL_KEYS) and that
+    acts in `config`'s model (model.speed_normalize on)."""
+    return config.model.speed_normalize and any(f"model.{key}" in changes for key in DRAWING_MODEL_KEYS)
 
 
 def describe_refit(changes: dict[str, tuple[Any, Any]]) -> str:
@@ -105,7 +117,8 @@ def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: Tra
     best weights) as `model` has it, unfitted; a state past the stage "temperature" taken back to its start, the
     stage's log rows and record left out, or, with the grid emptied, to the end of the stages. The state carries
     `config`'s values of those settings. Returns it and whether a finished run must be finished anew (it went
-    back, or it has a stage left now); a state whose config matches `config` there is returned as it is."""
+    back, it has a stage left now, or its draws change: :func:`changes_draws`); a state whose config matches
+    `config` there is returned as it is."""
     trained = state_config(path, state)
     if not refit_change(trained, config):
         return state, False
@@ -130,8 +143,11 @@ def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: Tra
                           if not isinstance(row, dict) or row.get("stage") != FlowModel.TEMPERATURE],
                      best={stage: record for stage, record in state["best"].items()
                            if stage != FlowModel.TEMPERATURE})
-    # a run that had done all its stages and now has one left (or must write its final model without one)
-    redo = went_back or (reached >= len(old_stages) and int(state.get("stage_index", 0)) < len(model.stages))
+    # a run that had done all its stages and now has one left (or must write its final model without one, or
+    # with a setting its draws read)
+    finished = reached >= len(old_stages)
+    redo = went_back or (finished and int(state.get("stage_index", 0)) < len(model.stages)) \
+        or (finished and changes_draws(config, refit_change(trained, config)))
     return state, redo
 
 
@@ -239,7 +255,8 @@ def follow_budget(run_dir: Path, config: RunConfig, model: TrajectoryModel, stat
     state, refitted = refit_state(run_dir / STATE_FILE, state, config, model)
     check_state(run_dir / STATE_FILE, state, model)
     if changes:
-        what = ("the stage after the flow is fitted again on the final flow" if refitted
+        what = ("the run is finished anew on its final flow (the stage after the flow fitted again where it has "
+                "one)" if refitted
                 else "recorded for the stage after the flow, which this run has not reached or does not have")
         say(f"{describe_refit(changes)}: {what}")
     trained = state_config(run_dir / STATE_FILE, state)
