@@ -508,6 +508,18 @@ def test_a_new_sample_threshold_finishes_a_run_anew_with_the_same_flow(monkeypat
         assert load_config(target / "config.toml") == load_config(whole / "config.toml")
 
 
+def test_a_sample_threshold_matters_to_finished_runs_only_where_scenes_are_scaled() -> None:
+    """What an experiment asks of its finished runs when the threshold changes (`refit_matters`): with
+    model.speed_normalize their draws change, with or without the temperature stage; without it nothing does."""
+    from trajflow_pipeline.training import refit_matters
+
+    for model in ("trajflow", "cv"):
+        for scaled in (True, False):
+            old = load_config(overrides=[f"model.name={model}", f"model.speed_normalize={str(scaled).lower()}"])
+            new = replace(old, model=replace(old.model, speed_normalize_sample_threshold=2.0))
+            assert refit_matters(old, new) is scaled, (model, scaled)
+
+
 def test_flow_temperature_and_its_grid_exclude_each_other() -> None:
     with pytest.raises(UsageError, match="flow_temperature_grid"):
         load_config(overrides=["model.flow_temperature=1.2", "model.flow_temperature_grid=[1.0, 1.2]"])

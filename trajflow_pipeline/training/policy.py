@@ -91,8 +91,8 @@ def refit_change(old: RunConfig, new: RunConfig) -> dict[str, tuple[Any, Any]]:
 
 def refit_matters(old: RunConfig, new: RunConfig) -> bool:
     """Whether `new`'s settings of the stage after the flow change what a run of `old` ends with: they differ and
-    the model has that stage under one of them (a grid for a model without it, or a new problem count with no
-    grid either way, changes nothing)."""
+    the model has that stage under one of them, or they change its draws (:func:`changes_draws`); a grid for a
+    model without it, or a new problem count with no grid either way, changes nothing."""
     changes = refit_change(old, new)
     stages_for = MODEL_CLASSES[new.model.name].stages_for
     return bool(changes) and (FlowModel.TEMPERATURE in (*stages_for(old.model), *stages_for(new.model))
