@@ -120,7 +120,8 @@ def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: Tra
     back, it has a stage left now, or its draws change: :func:`changes_draws`); a state whose config matches
     `config` there is returned as it is."""
     trained = state_config(path, state)
-    if not refit_change(trained, config):
+    changes = refit_change(trained, config)
+    if not changes:
         return state, False
     buffer = model.state_dict().get("fitted_temperature")
 
@@ -147,7 +148,7 @@ def refit_state(path: Path, state: dict[str, Any], config: RunConfig, model: Tra
     # with a setting its draws read)
     finished = reached >= len(old_stages)
     redo = went_back or (finished and int(state.get("stage_index", 0)) < len(model.stages)) \
-        or (finished and changes_draws(config, refit_change(trained, config)))
+        or (finished and changes_draws(config, changes))
     return state, redo
 
 
