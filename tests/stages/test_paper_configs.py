@@ -138,6 +138,18 @@ def test_the_eth_ucy_deviations_of_ours_change_nothing_on_synthetic_bimodal(synt
     assert all(torch.equal(plain[name], ours[name]) for name in plain)
 
 
+def test_the_candidate_for_one_configuration_is_one_on_both_benchmarks() -> None:
+    """configs/ours/eth_ucy_plus_standardized.toml and its synthetic side carry the same settings: ours for ETH/UCY
+    (whose settings before the flow the test above shows to be the identity on synthetic bimodal) plus the
+    standardized flow input."""
+    ours = CONFIGS.parent / "ours"
+    eth_ucy, synthetic = (load_experiment(ours / f"{name}.toml").train_overrides
+                          for name in ("eth_ucy_plus_standardized", "synthetic_bimodal_plus_eth_ucy"))
+    assert eth_ucy == synthetic
+    added = set(eth_ucy) - set(load_experiment(ours / "eth_ucy.toml").train_overrides)
+    assert added == {"model.flow_standardize=true", "model.flow_tail_bound=5"}
+
+
 BUDGET = sorted((CONFIGS.parent / "cpu").glob("*.toml"))
 
 
