@@ -95,6 +95,18 @@ def test_each_state_with_its_progress_and_the_time_its_stage_may_take(tmp_path: 
     assert status.to_dict()["runs"][3]["progress"]["epochs_left"] == (2, 5)
 
 
+def test_a_closed_form_last_stage_shows_no_time_per_epoch(tmp_path: Path) -> None:
+    """A baseline's fit and TrajFlow's temperature stage have no epochs: their seconds are not an epoch's time."""
+    out = write_experiment(tmp_path / "exp")
+    write_run(out, "trajflow-eth-s0", status="finished",
+              log=[*autoencoder_then_flow([-1, -2, -3, -2, -2, -2]), ("temperature", 1, None)], evaluated=True)
+    write_run(out, "cv-eth-s0", status="finished", model="cv", log=[("fit", 1, None)])
+    flow, cv = named(experiment_status(out), "trajflow-eth-s0", "cv-eth-s0")
+    assert flow.progress is not None and flow.progress.stage == "temperature"
+    assert cv.progress is not None and cv.progress.stage == "fit"
+    assert flow.progress.seconds_per_epoch is None and cv.progress.seconds_per_epoch is None
+
+
 def test_the_epoch_range_follows_train_early_stopping() -> None:
     """train.py: a stage ends at its maximum, or once it is past its minimum and `patience` epochs have brought no
     lower validation loss than the best (counted from epoch 0 while no loss was finite)."""

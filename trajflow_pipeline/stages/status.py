@@ -411,7 +411,8 @@ def _progress(log: pl.DataFrame, config: RunConfig, info: dict[str, Any] | None)
     stages = log.get_column("stage")
     stage = str(stages[-1])
     current = log.slice(int((stages != stages.shift(1)).fill_null(True).arg_true()[-1]))
-    recent = current.tail(_RECENT_EPOCHS).get_column("seconds").median()
+    # a closed-form stage (a baseline's fit, the temperature stage) has no epochs to time
+    recent = current.tail(_RECENT_EPOCHS).get_column("seconds").median() if stage in GRADIENT_STAGES else None
     finite = current.filter(pl.col("val_loss").is_not_null() & pl.col("val_loss").is_finite())
     best = int(finite.sort("val_loss", maintain_order=True).get_column("epoch")[0]) if finite.height else None
     kept = ((info or {}).get("best") or {}).get(stage) if isinstance((info or {}).get("best"), dict) else None
